@@ -35,7 +35,14 @@ class Number:
 
     def check(self, key: str, value: Any) -> float | int:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{key}: expected a number{self._unit()}, got {type(value).__name__} {value!r}")
+            hint = ""
+            if isinstance(value, str):
+                try:
+                    float(value)
+                    hint = " (YAML reads exponents without a sign as text: write 2.0e+5, not 2.0e5)"
+                except ValueError:
+                    pass
+            raise ConfigError(f"{key}: expected a number{self._unit()}, got {type(value).__name__} {value!r}{hint}")
         if self.integer and not float(value).is_integer():
             raise ConfigError(f"{key}: expected a whole number, got {value!r}")
         if not math.isfinite(value):

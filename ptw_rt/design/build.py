@@ -1,0 +1,197 @@
+"""`ptw-rt design`: compute the whole observer design over the speed grid, check it, write it."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
+from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design
+from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
+from ptw_rt.design.uihosmo import design_grid
+from ptw_rt.model.sharp import lpv_model
+from ptw_rt.paths import DEFAULT_DESIGN
+from ptw_rt.schema import ConfigError
+from ptw_rt.settings import Settings, load_settings
+
+# How many speeds to test inside each grid interval for the interpolated gains.
+BETWEEN_GRID_SAMPLES = 7
+
+
+class DesignInfeasible(RuntimeError):
+    pass
+
+
+def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
+    p, est = settings.vehicle, settings.estimator
+    dt = est.sample_time
+    grid = est.speed_grid_ms()
+
+    uh = design_grid(p, grid, est.uihosmo_decay_rate, est.uihosmo_output_weight, dt)
+    if est.min_valid_speed_kmh / 3.6 < uh.detectability_floor:
+        raise ConfigError(
+            f"{settings.source}: estimator.min_valid_speed_kmh = {est.min_valid_speed_kmh} is below "
+            f"{uh.detectability_floor * 3.6:.1f} km/h, where seed 000 case 2 stops being strongly detectable "
+            "for this vehicle (unstable invariant zeros): raise it"
+        )
+
+    sol = solve_lmis(p, (float(grid[0]), float(grid[-1])), est.decay_rate, est.stiffness_deviation_bound,
+                     est.pole_disk_radius)
+    if not sol.feasible:
+        raise DesignInfeasible(
+            f"LMIs (33)-(34) of the adaptive observer are infeasible (solver status {sol.status}); "
+            "lower estimator.adaptive.decay_rate or stiffness_deviation_bound, or widen pole_disk_radius"
+        )
+    model = lpv_model(p)
+    C = output_matrix(p)
+    ad_Phi, ad_B = [], []
+    for u in grid:
+        L = scheduled_gain(sol, float(u))
+        Phi, Bd = zoh(model.A(u) - L @ C, np.column_stack([model.B, model.D, L]), dt)
+        ad_Phi.append(Phi)
+        ad_B.append(Bd)
+    ad_B = np.array(ad_B)
+    nominal = np.array(p.nominal_stiffness())
+    data = DesignData(
+        format_version=FORMAT_VERSION,
+        config_hash=settings.config_hash,
+        vehicle_name=p.name,
+        sample_time=dt,
+        grid=grid,
+        min_valid_speed=est.min_valid_speed_kmh / 3.6,
+        detectability_floor=uh.detectability_floor,
+        uh_detectable=uh.detectable,
+        uh_Phi=np.array([pt.Phi for pt in uh.points]),
+        uh_Gamma=np.array([pt.Gamma for pt in uh.points]),
+        uh_T=np.array([pt.T for pt in uh.points]),
+        uh_T_inv=np.array([pt.T_inv for pt in uh.points]),
+        uh_Abar=np.array([pt.Abar for pt in uh.points]),
+        uh_Dbar_inv=np.array([pt.Dbar_inv for pt in uh.points]),
+        uh_Phi22=np.array([pt.Phi22 for pt in uh.points]),
+        uh_Gamma21=np.array([pt.Gamma21 for pt in uh.points]),
+        uh_complement_rows=np.array(uh.complement_rows),
+        uh_differentiator_lambda=est.differentiator_lambda,
+        ad_Phi=np.array(ad_Phi),
+        ad_B_tau=ad_B[:, :, 0],
+        ad_B_theta=ad_B[:, :, 1:3],
+        ad_B_y=ad_B[:, :, 3:],
+        ad_C=C,
+        ad_T=sol.T_physical,
+        ad_gamma=np.array(est.adaptation_gain),
+        ad_theta_nominal=nominal,
+        ad_theta_bound=est.stiffness_deviation_bound * nominal,
+        ad_L_vertices=np.array(sol.L_vertices),
+        ad_speed_vertices=np.array(sol.speed_vertices),
+        ad_lmi_slack=sol.slack,
+        ad_lmi_residual=sol.residual,
+        regressor_constants=np.array([p.sigma_f, p.sigma_r, p.l_f, p.l_r, p.caster, p.trail]),
+    )
+    return data, {"lmi_solution": sol, "uihosmo": uh}
+
+
+def uihosmo_radius(Phi: np.ndarray, Phi22: np.ndarray) -> float:
+    """Spectral radius of the block-triangular linear error dynamics (pre-observer, zero dynamics)."""
+    return max(spectral_radius(Phi), spectral_radius(Phi22))
+
+
+def check_design(data: DesignData) -> dict[str, Any]:
+    """Spectral radii of each observer's discrete error dynamics at and between grid speeds."""
+    grid = data.grid
+    uh_rho = [uihosmo_radius(data.uh_Phi[i], data.uh_Phi22[i]) for i in range(len(grid))]
+    ad_rho = [spectral_radius(data.ad_Phi[i]) for i in range(len(grid))]
+    worst = {"uihosmo": 0.0, "adaptive": 0.0}
+    worst_at = {"uihosmo": None, "adaptive": None}
+    for i in range(len(grid) - 1):
+        for w in np.linspace(0.0, 1.0, BETWEEN_GRID_SAMPLES + 2)[1:-1]:
+            u = (1 - w) * grid[i] + w * grid[i + 1]
+            r_uh = uihosmo_radius(interpolate(grid, data.uh_Phi, u), interpolate(grid, data.uh_Phi22, u))
+            r_ad = spectral_radius(interpolate(grid, data.ad_Phi, u))
+            for key, r in (("uihosmo", r_uh), ("adaptive", r_ad)):
+                if r > worst[key]:
+                    worst[key], worst_at[key] = r, u
+    feasible = bool(math.isfinite(data.ad_lmi_slack))
+    result = {
+        "grid_kmh": [round(float(u) * 3.6, 6) for u in grid],
+        "uihosmo": {
+            "spectral_radius": uh_rho,
+            "detectable": [bool(d) for d in data.uh_detectable],
+            "detectability_floor_kmh": data.detectability_floor * 3.6,
+            "min_valid_speed_kmh": data.min_valid_speed * 3.6,
+        },
+        "adaptive": {
+            "spectral_radius": ad_rho,
+            "lmi": {"feasible": feasible, "slack": data.ad_lmi_slack, "residual": data.ad_lmi_residual},
+        },
+        "between_grid": {
+            "max_spectral_radius": max(worst.values()),
+            "uihosmo": {"max_spectral_radius": worst["uihosmo"], "at_kmh": worst_at["uihosmo"] * 3.6},
+            "adaptive": {"max_spectral_radius": worst["adaptive"], "at_kmh": worst_at["adaptive"] * 3.6},
+            "samples_per_interval": BETWEEN_GRID_SAMPLES,
+        },
+    }
+    result["stable"] = bool(
+        feasible and max(uh_rho) < 1.0 and max(ad_rho) < 1.0 and result["between_grid"]["max_spectral_radius"] < 1.0
+    )
+    return result
+
+
+def format_check(result: dict[str, Any]) -> str:
+    lines = [f"{'speed [km/h]':>12} {'UIHOSMO rho':>12} {'detectable':>10} {'adaptive rho':>13}"]
+    uh, ad = result["uihosmo"], result["adaptive"]
+    for v, r1, d, r2 in zip(result["grid_kmh"], uh["spectral_radius"], uh["detectable"], ad["spectral_radius"],
+                            strict=True):
+        lines.append(f"{v:12.1f} {r1:12.4f} {'yes' if d else 'NO':>10} {r2:13.4f}")
+    bg = result["between_grid"]
+    lmi = ad["lmi"]
+    lines += [
+        f"case 2 strongly detectable above {uh['detectability_floor_kmh']:.1f} km/h; "
+        f"estimates valid above {uh['min_valid_speed_kmh']:.1f} km/h",
+        f"between grid points ({bg['samples_per_interval']} per interval, interpolated gains): max rho "
+        f"UIHOSMO {bg['uihosmo']['max_spectral_radius']:.4f} at {bg['uihosmo']['at_kmh']:.1f} km/h, "
+        f"adaptive {bg['adaptive']['max_spectral_radius']:.4f} at {bg['adaptive']['at_kmh']:.1f} km/h",
+        f"LMI feasible: {lmi['feasible']}, slack {lmi['slack']:.3g}, ||D^T P - T C|| {lmi['residual']:.3g}",
+        "STABLE at and between every grid speed" if result["stable"] else "NOT STABLE: see the rows above",
+    ]
+    return "\n".join(lines)
+
+
+def run_design(args) -> int:
+    settings = load_settings(args.config)
+    if args.check:
+        path = args.design_file or (DEFAULT_DESIGN if args.out is None else args.out)
+        if Path(path).exists():
+            try:
+                data = load_design(path, settings.config_hash, args.config)
+            except DesignFileError as exc:
+                print(f"ptw-rt design --check: {exc}", file=sys.stderr)
+                return 1
+            source = str(path)
+        else:
+            data, _ = make_design(settings)
+            source = "fresh design (no design file at " + str(path) + ")"
+        result = check_design(data)
+        result["design_source"] = source
+        if args.json:
+            json.dump(result, sys.stdout)
+            sys.stdout.write("\n")
+        else:
+            print(f"Design check of {source}")
+            print(format_check(result))
+        return 0 if result["stable"] else 1
+    out = args.out or DEFAULT_DESIGN
+    data, _ = make_design(settings)
+    result = check_design(data)
+    if not result["stable"]:
+        print(format_check(result), file=sys.stderr)
+        print("ptw-rt design: the design is not stable; nothing written", file=sys.stderr)
+        return 1
+    data.save(out)
+    print(f"wrote {out} ({len(data.grid)} grid speeds {data.grid[0] * 3.6:.1f}-{data.grid[-1] * 3.6:.1f} km/h, "
+          f"config hash {data.config_hash[:12]})")
+    print(format_check(result))
+    return 0

@@ -1,0 +1,162 @@
+"""AUTOSAR E2E Profile 11 (Data ID mode BOTH) for classic 8-byte CAN frames.
+
+Pure functions, no cantools. Frame layout (CAN interface contract v1):
+
+* byte 0: CRC-8 SAE J1850 (polynomial 0x1D) as Profile 11 computes it: start value 0x00, no final XOR,
+  over the Data ID's low byte, then its high byte, then bytes 1..n-1 of the frame. (AUTOSAR's
+  ``Crc_CalculateCRC8`` is called with start value 0xFF and ``IsFirstCall = FALSE``, which un-does its
+  own 0xFF pre/post XOR: the net effect is the plain polynomial with init 0x00 and no output XOR.)
+* byte 1, low nibble: counter 0..14, incremented once per sent frame, wrapping 14 -> 0; 15 is never sent.
+
+The Data ID is the message's 11-bit CAN identifier. Verified against the ``autosar-e2e`` package
+(``e2e.p11``) in ``tests/test_e2e.py``.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+__all__ = [
+    "COUNTER_MAX",
+    "CRC8_POLY",
+    "P11Checker",
+    "P11Status",
+    "check_p11",
+    "counter_delta",
+    "crc8_sae_j1850",
+    "next_counter",
+    "profile11_crc",
+    "protect_p11",
+]
+
+CRC8_POLY = 0x1D
+COUNTER_MAX = 14  # Profile 11 counter range 0..14; 15 is never sent
+_COUNTER_MODULUS = COUNTER_MAX + 1
+
+
+def _make_table(poly: int) -> tuple[int, ...]:
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ poly) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+        table.append(crc)
+    return tuple(table)
+
+
+_TABLE = _make_table(CRC8_POLY)
+
+
+def _crc8_raw(data: bytes | bytearray | memoryview, crc: int) -> int:
+    """Table-driven CRC-8/0x1D update without any pre/post XOR."""
+    table = _TABLE
+    for b in data:
+        crc = table[crc ^ b]
+    return crc
+
+
+def crc8_sae_j1850(data: bytes, start: int = 0xFF, xor_out: bool = True) -> int:
+    """CRC-8 SAE J1850 (polynomial 0x1D, not reflected).
+
+    ``start`` is the initial register value; ``xor_out`` applies the final XOR with 0xFF.
+    Defaults give the standard CRC-8/SAE-J1850 (check value of ``b"123456789"`` is 0x4B).
+    ``start=0x00, xor_out=False`` is the variant AUTOSAR E2E Profiles 1 and 11 use.
+    """
+    crc = _crc8_raw(data, start & 0xFF)
+    return crc ^ 0xFF if xor_out else crc
+
+
+def profile11_crc(data_id: int, frame: bytes) -> int:
+    """Profile 11 CRC (Data ID mode BOTH) of ``frame``: over Data ID low byte, high byte, then ``frame[1:]``.
+
+    Byte 0 of ``frame`` (the CRC itself) is not included.
+    """
+    table = _TABLE
+    crc = table[data_id & 0xFF]  # start value 0x00: first step is table[0 ^ b]
+    crc = table[crc ^ ((data_id >> 8) & 0xFF)]
+    for b in frame[1:]:
+        crc = table[crc ^ b]
+    return crc
+
+
+def protect_p11(data_id: int, data: bytearray, counter: int) -> None:
+    """Write ``counter`` into the low nibble of byte 1 (high nibble kept) and the Profile 11 CRC into byte 0.
+
+    Raises ValueError if the counter is outside 0..14 or the frame is shorter than 2 bytes.
+    """
+    if not 0 <= counter <= COUNTER_MAX:
+        raise ValueError(f"E2E P11 counter must be 0..{COUNTER_MAX}, got {counter}")
+    if len(data) < 2:
+        raise ValueError("E2E P11 frame needs at least 2 bytes")
+    data[1] = (data[1] & 0xF0) | counter
+    data[0] = profile11_crc(data_id, data)
+
+
+def check_p11(data_id: int, data: bytes) -> bool:
+    """True if byte 0 is the correct Profile 11 CRC of ``data`` for ``data_id`` (stateless: CRC only)."""
+    if len(data) < 2:
+        return False
+    return data[0] == profile11_crc(data_id, data)
+
+
+def next_counter(c: int) -> int:
+    """The counter after ``c``: 0, 1, ..., 14, 0, ... (15 is never produced; a stray 15 maps to 0)."""
+    return c + 1 if 0 <= c < COUNTER_MAX else 0
+
+
+def counter_delta(previous: int, current: int, modulus: int = _COUNTER_MODULUS) -> int:
+    """How far a rolling counter advanced from ``previous`` to ``current`` (0 = repeated, 1 = in sequence).
+
+    ``modulus`` is 15 for Profile 11 / estimator outputs (0..14) and 16 for plain 4-bit input counters (0..15).
+    """
+    return (current - previous) % modulus
+
+
+class P11Status(IntEnum):
+    """Receiver-side result of a Profile 11 check (names after AUTOSAR E2E_P11CheckStatusType)."""
+
+    OK = 0
+    OKSOMELOST = 1
+    REPEATED = 2
+    WRONGSEQUENCE = 3
+    ERROR = 4
+    INITIAL = 5  # first valid frame after construction / reset: sequence not yet known
+
+
+class P11Checker:
+    """Stateful Profile 11 receiver check for one Data ID: CRC, counter range, repetition and jumps.
+
+    ``check(data)`` returns ``ERROR`` for a wrong CRC (corrupted or misrouted frame) or counter 15,
+    ``REPEATED`` if the counter did not advance (frozen sender), ``OK`` for delta 1, ``OKSOMELOST`` for
+    2..``max_delta_counter`` and ``WRONGSEQUENCE`` beyond. Only frames that pass the CRC update the state.
+    """
+
+    __slots__ = ("data_id", "max_delta_counter", "_last")
+
+    def __init__(self, data_id: int, max_delta_counter: int = 1) -> None:
+        if not 1 <= max_delta_counter <= COUNTER_MAX:
+            raise ValueError(f"max_delta_counter must be 1..{COUNTER_MAX}")
+        self.data_id = data_id
+        self.max_delta_counter = max_delta_counter
+        self._last: int | None = None
+
+    def reset(self) -> None:
+        self._last = None
+
+    def check(self, data: bytes) -> P11Status:
+        if not check_p11(self.data_id, data):
+            return P11Status.ERROR
+        counter = data[1] & 0x0F
+        if counter > COUNTER_MAX:
+            return P11Status.ERROR
+        last, self._last = self._last, counter
+        if last is None:
+            return P11Status.INITIAL
+        delta = counter_delta(last, counter)
+        if delta == 0:
+            return P11Status.REPEATED
+        if delta == 1:
+            return P11Status.OK
+        if delta <= self.max_delta_counter:
+            return P11Status.OKSOMELOST
+        return P11Status.WRONGSEQUENCE

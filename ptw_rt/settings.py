@@ -1,0 +1,120 @@
+"""The vehicle-and-tuning file (config/scooter.yaml): load, validate, fingerprint.
+
+One file holds the vehicle (physics) and the estimator tuning (design
+choices). Its canonical hash ties a design file to the exact configuration
+it was computed from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ptw_rt.model.parameters import VEHICLE_SCHEMA, VehicleParameters, vehicle_from_mapping
+from ptw_rt.schema import ConfigError, Number, NumberList, Section, canonical_hash, read_yaml, validate
+
+ESTIMATOR_SCHEMA = Section(
+    {
+        "sample_time": Number("s", gt=0, le=0.1),
+        "speed_grid": Section(
+            {
+                "min_kmh": Number("km/h", gt=0),
+                "max_kmh": Number("km/h", gt=0, le=250),
+                "step_kmh": Number("km/h", gt=0),
+            }
+        ),
+        "min_valid_speed_kmh": Number("km/h", gt=0),
+        "uihosmo": Section(
+            {
+                "decay_rate": Number("1/s", gt=0),
+                "output_weight": Number("", gt=0),
+                "differentiator_lambda": Number("", gt=0),
+            }
+        ),
+        "adaptive": Section(
+            {
+                "decay_rate": Number("1/s", ge=0),
+                "pole_disk_radius": Number("1/s", gt=0),
+                "stiffness_deviation_bound": Number("", gt=0, lt=1),
+                "adaptation_gain": NumberList(Number("", gt=0), min_len=4, max_len=4),
+            }
+        ),
+    }
+)
+
+CONFIG_SCHEMA = Section({"vehicle": VEHICLE_SCHEMA, "estimator": ESTIMATOR_SCHEMA})
+
+
+@dataclass(frozen=True)
+class EstimatorTuning:
+    sample_time: float
+    grid_min_kmh: float
+    grid_max_kmh: float
+    grid_step_kmh: float
+    min_valid_speed_kmh: float
+    uihosmo_decay_rate: float
+    uihosmo_output_weight: float
+    differentiator_lambda: float
+    decay_rate: float
+    pole_disk_radius: float
+    stiffness_deviation_bound: float
+    adaptation_gain: tuple[float, ...]
+
+    def speed_grid_ms(self) -> np.ndarray:
+        """Design grid in m/s; the end points are always included."""
+        n = int(round((self.grid_max_kmh - self.grid_min_kmh) / self.grid_step_kmh))
+        return np.linspace(self.grid_min_kmh, self.grid_max_kmh, n + 1) / 3.6
+
+
+@dataclass(frozen=True)
+class Settings:
+    source: str
+    vehicle: VehicleParameters
+    estimator: EstimatorTuning
+    config_hash: str
+
+
+def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
+    grid = est["speed_grid"]
+    if grid["max_kmh"] <= grid["min_kmh"]:
+        raise ConfigError(f"{source}: estimator.speed_grid.max_kmh must be above min_kmh")
+    if grid["step_kmh"] > grid["max_kmh"] - grid["min_kmh"]:
+        raise ConfigError(f"{source}: estimator.speed_grid.step_kmh is larger than the grid span")
+    if est["min_valid_speed_kmh"] < grid["min_kmh"]:
+        raise ConfigError(
+            f"{source}: estimator.min_valid_speed_kmh ({est['min_valid_speed_kmh']}) is below the design grid "
+            f"(speed_grid.min_kmh = {grid['min_kmh']}): there would be no gains for those speeds"
+        )
+    ad = est["adaptive"]
+    return EstimatorTuning(
+        sample_time=est["sample_time"],
+        grid_min_kmh=grid["min_kmh"],
+        grid_max_kmh=grid["max_kmh"],
+        grid_step_kmh=grid["step_kmh"],
+        min_valid_speed_kmh=est["min_valid_speed_kmh"],
+        uihosmo_decay_rate=est["uihosmo"]["decay_rate"],
+        uihosmo_output_weight=est["uihosmo"]["output_weight"],
+        differentiator_lambda=est["uihosmo"]["differentiator_lambda"],
+        decay_rate=ad["decay_rate"],
+        pole_disk_radius=ad["pole_disk_radius"],
+        stiffness_deviation_bound=ad["stiffness_deviation_bound"],
+        adaptation_gain=tuple(ad["adaptation_gain"]),
+    )
+
+
+def settings_from_mapping(doc: Any, source: str) -> Settings:
+    validated = validate(doc, CONFIG_SCHEMA, source)
+    vehicle = vehicle_from_mapping(doc["vehicle"], source)
+    return Settings(
+        source=source,
+        vehicle=vehicle,
+        estimator=_tuning(validated["estimator"], source),
+        config_hash=canonical_hash(validated),
+    )
+
+
+def load_settings(path: str | Path) -> Settings:
+    return settings_from_mapping(read_yaml(path), str(path))
