@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
-from ptw_rt.schema import ConfigError
 
 
 def _speeds(text: str) -> list[float]:
@@ -82,8 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     handler = getattr(importlib.import_module(module_name), func_name)
     try:
         return int(handler(args) or 0)
-    except ConfigError as exc:
-        print(f"ptw-rt {args.command}: configuration error: {exc}", file=sys.stderr)
+    except UserFacingError as exc:
+        print(f"ptw-rt {args.command}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -10,14 +10,17 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import yaml
 
+from ptw_rt.errors import UserFacingError
 
-class ConfigError(ValueError):
+
+class ConfigError(UserFacingError, ValueError):
     """A configuration file is missing, unreadable or has an invalid value."""
 
 
@@ -176,4 +179,3 @@ def canonical_hash(data: Any) -> str:
 
     blob = json.dumps(normalise(data), sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()
-

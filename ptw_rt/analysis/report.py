@@ -78,9 +78,7 @@ def format_table(result: dict[str, Any]) -> str:
             verdict = "minimum phase" if worst < 0 else "NON-minimum phase"
             zeros_text = ", ".join(_fmt(z).strip() for z in zs if z[1] >= 0)
             lines.append(f"  {label:<40} max Re {worst:7.2f} ({verdict}): {zeros_text}")
-        lines.append(
-            f"  case 2 relative degree {r['relative_degree_case2']}, decoupling det {r['decoupling_det']:.4g}"
-        )
+        lines.append(f"  case 2 relative degree {r['relative_degree_case2']}, decoupling det {r['decoupling_det']:.4g}")
     return "\n".join(lines)
 
 

@@ -14,6 +14,7 @@ from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
 from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
 from ptw_rt.design.uihosmo import design_grid
+from ptw_rt.errors import UserFacingError
 from ptw_rt.model.sharp import lpv_model
 from ptw_rt.paths import DEFAULT_DESIGN
 from ptw_rt.schema import ConfigError
@@ -23,7 +24,7 @@ from ptw_rt.settings import Settings, load_settings
 BETWEEN_GRID_SAMPLES = 7
 
 
-class DesignInfeasible(RuntimeError):
+class DesignInfeasibleError(UserFacingError, RuntimeError):
     pass
 
 
@@ -40,10 +41,11 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
             "for this vehicle (unstable invariant zeros): raise it"
         )
 
-    sol = solve_lmis(p, (float(grid[0]), float(grid[-1])), est.decay_rate, est.stiffness_deviation_bound,
-                     est.pole_disk_radius)
+    sol = solve_lmis(
+        p, (float(grid[0]), float(grid[-1])), est.decay_rate, est.stiffness_deviation_bound, est.pole_disk_radius
+    )
     if not sol.feasible:
-        raise DesignInfeasible(
+        raise DesignInfeasibleError(
             f"LMIs (33)-(34) of the adaptive observer are infeasible (solver status {sol.status}); "
             "lower estimator.adaptive.decay_rate or stiffness_deviation_bound, or widen pole_disk_radius"
         )
@@ -143,8 +145,9 @@ def check_design(data: DesignData) -> dict[str, Any]:
 def format_check(result: dict[str, Any]) -> str:
     lines = [f"{'speed [km/h]':>12} {'UIHOSMO rho':>12} {'detectable':>10} {'adaptive rho':>13}"]
     uh, ad = result["uihosmo"], result["adaptive"]
-    for v, r1, d, r2 in zip(result["grid_kmh"], uh["spectral_radius"], uh["detectable"], ad["spectral_radius"],
-                            strict=True):
+    for v, r1, d, r2 in zip(
+        result["grid_kmh"], uh["spectral_radius"], uh["detectable"], ad["spectral_radius"], strict=True
+    ):
         lines.append(f"{v:12.1f} {r1:12.4f} {'yes' if d else 'NO':>10} {r2:13.4f}")
     bg = result["between_grid"]
     lmi = ad["lmi"]
@@ -191,7 +194,9 @@ def run_design(args) -> int:
         print("ptw-rt design: the design is not stable; nothing written", file=sys.stderr)
         return 1
     data.save(out)
-    print(f"wrote {out} ({len(data.grid)} grid speeds {data.grid[0] * 3.6:.1f}-{data.grid[-1] * 3.6:.1f} km/h, "
-          f"config hash {data.config_hash[:12]})")
+    print(
+        f"wrote {out} ({len(data.grid)} grid speeds {data.grid[0] * 3.6:.1f}-{data.grid[-1] * 3.6:.1f} km/h, "
+        f"config hash {data.config_hash[:12]})"
+    )
     print(format_check(result))
     return 0

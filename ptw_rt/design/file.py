@@ -12,11 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ptw_rt.errors import UserFacingError
+
 FORMAT_VERSION = 1
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
-class DesignFileError(ValueError):
+class DesignFileError(UserFacingError, ValueError):
     """The design file is missing, unreadable, of another format version, or made for another config."""
 
 

@@ -30,7 +30,7 @@ import cvxpy as cp
 import numpy as np
 
 from ptw_rt.model.parameters import VehicleParameters
-from ptw_rt.model.sharp import DELTA, DELTA_DOT, FYF, FYR, N_STATES, PHI_DOT, R, LPVModel, lpv_model, regressor
+from ptw_rt.model.sharp import DELTA, DELTA_DOT, FYF, FYR, N_STATES, PHI_DOT, LPVModel, R, lpv_model, regressor
 
 N_Y = 6
 OUTPUT_NAMES = ("delta", "r", "phi_dot", "delta_dot", "a_y", "y_a")
@@ -58,8 +58,12 @@ def lipschitz_jacobians(model: LPVModel, speeds: tuple[float, float], theta_boun
     jacobians = []
     for u in speeds:
         # Columns of d chi / d x: chi is linear in x, so evaluate it on unit vectors.
-        basis = [regressor(np.eye(N_STATES)[k], u, model.sigma_f, model.sigma_r, model.l_f, model.l_r,
-                           model.caster, model.trail) for k in range(N_STATES)]
+        basis = [
+            regressor(
+                np.eye(N_STATES)[k], u, model.sigma_f, model.sigma_r, model.l_f, model.l_r, model.caster, model.trail
+            )
+            for k in range(N_STATES)
+        ]
         for signs in itertools.product((-1.0, 1.0), repeat=4):
             theta = theta_bound * np.array(signs)
             J = np.column_stack([model.D @ (chi @ theta) for chi in basis])
@@ -155,8 +159,25 @@ def solve_lmis(
     feasible = status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) and P.value is not None
     if not feasible:
         nan = np.full((n, n), np.nan)
-        return LmiSolution(False, status, np.nan, np.nan, nan, (nan, nan), np.full((2, N_Y), np.nan), nan, nan,
-                           A_s, C_s, D_s, decay_rate, q, (nan, nan), np.full((2, N_Y), np.nan), speed_range)
+        return LmiSolution(
+            False,
+            status,
+            np.nan,
+            np.nan,
+            nan,
+            (nan, nan),
+            np.full((2, N_Y), np.nan),
+            nan,
+            nan,
+            A_s,
+            C_s,
+            D_s,
+            decay_rate,
+            q,
+            (nan, nan),
+            np.full((2, N_Y), np.nan),
+            speed_range,
+        )
     P_v = 0.5 * (P.value + P.value.T)
     K_v = tuple(k.value for k in K)
     T_v = T.value

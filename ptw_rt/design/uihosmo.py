@@ -26,9 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
+from ptw_rt.analysis.observability import invariant_zeros
 from ptw_rt.design.discretize import spectral_radius, zoh
 from ptw_rt.model.parameters import VehicleParameters
-from ptw_rt.analysis.observability import invariant_zeros
 from ptw_rt.model.sharp import UnknownInputSystem, case2
 
 N_X = 7  # reduced state [delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr]
@@ -200,6 +200,7 @@ def design_grid(
     rows = choose_complement_rows(systems)
     detectable = speeds >= floor
     points = [
-        design_point(p, u, decay_rate, output_weight, rows, dt, bool(ok)) for u, ok in zip(speeds, detectable, strict=True)
+        design_point(p, u, decay_rate, output_weight, rows, dt, bool(ok))
+        for u, ok in zip(speeds, detectable, strict=True)
     ]
     return UihosmoDesign(points, rows, floor, detectable)

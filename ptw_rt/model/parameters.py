@@ -160,7 +160,7 @@ class VehicleParameters:
         """(C_af, C_gf, C_ar, C_gr): the order of seed 001's parameter vector Theta."""
         return (self.c_af, self.c_gf, self.c_ar, self.c_gr)
 
-    def scaled(self, mass_inertia: float = 1.0, stiffness: float = 1.0) -> "VehicleParameters":
+    def scaled(self, mass_inertia: float = 1.0, stiffness: float = 1.0) -> VehicleParameters:
         """A perturbed vehicle: masses and inertias (and load) times one factor, tyre stiffness times another."""
         mi = mass_inertia
         return replace(

@@ -1,0 +1,104 @@
+"""Strong observability analysis (seed 000 sec. III) and the `analyze` command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ptw_rt.analysis.modes import classify_modes
+from ptw_rt.analysis.observability import (
+    decoupling_matrix,
+    invariant_zeros,
+    is_strongly_detectable,
+    relative_degree,
+)
+from ptw_rt.analysis.report import analyze
+from ptw_rt.model.sharp import UnknownInputSystem, case1, case2, full_system, kmh
+
+SPEEDS = [20, 50, 80, 100, 120]
+
+
+@pytest.mark.parametrize("speed_kmh", SPEEDS)
+def test_case2_relative_degree_and_decoupling(vehicle, speed_kmh):
+    sys = case2(vehicle, kmh(speed_kmh))
+    degrees = relative_degree(sys)
+    assert degrees == [2, 1]
+    assert abs(np.linalg.det(decoupling_matrix(sys, degrees))) > 1.0
+    assert len(invariant_zeros(sys)) == 7 - 3
+    assert is_strongly_detectable(sys)
+
+
+@pytest.mark.parametrize("speed_kmh", SPEEDS)
+def test_full_model_is_not_detectable_below_100(vehicle, speed_kmh):
+    sys = full_system(vehicle, kmh(speed_kmh))
+    assert relative_degree(sys) == [2]
+    assert is_strongly_detectable(sys) == (speed_kmh > 110)
+
+
+def test_case1_loses_detectability_near_120(vehicle):
+    assert is_strongly_detectable(case1(vehicle, kmh(100)))
+    assert not is_strongly_detectable(case1(vehicle, kmh(120)))
+
+
+def test_zeros_of_a_known_system():
+    # G(s) = (s + 3) / ((s + 1)(s + 2)) in controllable form: one zero at -3.
+    A = np.array([[0.0, 1.0], [-2.0, -3.0]])
+    sys = UnknownInputSystem(A, np.array([[0.0], [1.0]]), np.array([[3.0, 1.0]]))
+    assert np.allclose(invariant_zeros(sys), [-3.0])
+    assert relative_degree(sys) == [1]
+
+
+def test_relative_degree_detects_a_chain():
+    A = np.diag([1.0, 1.0], k=1)  # triple integrator
+    sys = UnknownInputSystem(A, np.array([[0.0], [0.0], [1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    assert relative_degree(sys) == [3]
+    assert len(invariant_zeros(sys)) == 0
+
+
+def test_modes_are_named(vehicle):
+    result = analyze(vehicle, [20, 100])
+    names20 = {m["name"] for m in result["results"][0]["modes"]}
+    assert {"wobble", "weave", "capsize"} <= names20
+    weave20 = next(m for m in result["results"][0]["modes"] if m["name"] == "weave")
+    assert not weave20["stable"] and 0.3 < weave20["frequency_hz"] < 1.0
+    wobble100 = next(m for m in result["results"][1]["modes"] if m["name"] == "wobble")
+    assert 8.0 < wobble100["frequency_hz"] < 10.0
+
+
+def test_mode_classification_on_synthetic_spectrum():
+    modes = classify_modes(np.array([-10 + 60j, -10 - 60j, -2 + 10j, -2 - 10j, -0.5, -150.0]), 30.0, (0.2, 0.2))
+    assert [m.name for m in modes] == ["wobble", "weave", "capsize", "tyre relaxation"]
+
+
+def test_analyze_cli_json_shape():
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt.cli", "analyze", "--speeds", "20,50,80,100,120", "--json"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    data = json.loads(proc.stdout)
+    assert data["speeds_kmh"] == SPEEDS
+    assert len(data["results"]) == 5
+    for r in data["results"]:
+        assert set(r) >= {"speed_kmh", "eigenvalues", "zeros", "relative_degree_case2", "decoupling_det"}
+        assert len(r["eigenvalues"]) == 8 and all(len(e) == 2 for e in r["eigenvalues"])
+        assert set(r["zeros"]) == {"full", "case1", "case2"}
+        assert r["relative_degree_case2"] == [2, 1]
+        assert max(z[0] for z in r["zeros"]["case2"]) < 0
+
+
+def test_analyze_cli_table():
+    proc = subprocess.run([sys.executable, "-m", "ptw_rt.cli", "analyze"], capture_output=True, text=True, check=True)
+    assert "wobble" in proc.stdout and "weave" in proc.stdout and "NON-minimum phase" in proc.stdout
+
+
+def test_bad_speeds_argument():
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt.cli", "analyze", "--speeds", "fast"], capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and "comma-separated" in proc.stderr

@@ -1,0 +1,202 @@
+"""Offline design: UIHOSMO transformation, LMI solution, exact discretisation, stability, the design file."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from ptw_rt.analysis.observability import invariant_zeros
+from ptw_rt.design.build import check_design
+from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
+from ptw_rt.design.file import DesignFileError, load_design
+from ptw_rt.design.lpv_lmi import lipschitz_jacobians
+from ptw_rt.design.uihosmo import complement_rows
+from ptw_rt.model.sharp import case2, kmh, lpv_model, state_space
+from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
+from ptw_rt.settings import load_settings
+
+
+@pytest.fixture(scope="module")
+def design(fresh_design):
+    return fresh_design[0]
+
+
+@pytest.fixture(scope="module")
+def extras(fresh_design):
+    return fresh_design[1]
+
+
+def test_committed_design_file_is_current(settings):
+    """Fails when config/scooter.yaml changed without `ptw-rt design` being re-run."""
+    data = load_design(DEFAULT_DESIGN, settings.config_hash, DEFAULT_CONFIG)
+    assert data.config_hash == settings.config_hash
+
+
+def test_committed_design_equals_a_fresh_design(design):
+    committed = load_design(DEFAULT_DESIGN)
+    for name in ("uh_Phi", "uh_T", "uh_Dbar_inv", "ad_Phi", "ad_B_y", "ad_T"):
+        a, b = getattr(committed, name), getattr(design, name)
+        assert np.allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(b).max()), name
+
+
+def test_stale_design_is_refused(tmp_path, settings):
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["vehicle"]["rear_tyre"]["cornering_stiffness"] = 19000
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(yaml.safe_dump(doc))
+    other = load_settings(changed)
+    with pytest.raises(DesignFileError, match="made for another configuration.*ptw-rt design --config"):
+        load_design(DEFAULT_DESIGN, other.config_hash, changed)
+
+
+def test_design_file_errors(tmp_path):
+    with pytest.raises(DesignFileError, match="not found"):
+        load_design(tmp_path / "missing.npz")
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a zip file")
+    with pytest.raises(DesignFileError, match="not a readable design file"):
+        load_design(garbage)
+    old = tmp_path / "old.npz"
+    np.savez(old, format_version=np.array(0))
+    with pytest.raises(DesignFileError, match="format version 0"):
+        load_design(old)
+
+
+def test_every_observer_is_stable_at_and_between_grid_speeds(design):
+    result = check_design(design)
+    assert result["stable"]
+    assert max(result["uihosmo"]["spectral_radius"]) < 1.0
+    assert max(result["adaptive"]["spectral_radius"]) < 1.0
+    assert result["between_grid"]["max_spectral_radius"] < 1.0
+    assert design.grid[0] * 3.6 == pytest.approx(10) and design.grid[-1] * 3.6 == pytest.approx(130)
+
+
+def test_detectability_floor_and_validity(design, vehicle):
+    floor = design.detectability_floor
+    assert 13.5 / 3.6 < floor < 15.0 / 3.6
+    assert invariant_zeros(case2(vehicle, floor - 0.05)).real.max() > 0
+    assert invariant_zeros(case2(vehicle, floor + 0.05)).real.max() < 0
+    assert design.min_valid_speed > floor
+    assert np.array_equal(design.uh_detectable, design.grid >= floor)
+
+
+def test_uihosmo_transformation_structure(extras, vehicle):
+    for pt in extras["uihosmo"].points:
+        if pt.speed * 3.6 < 15:
+            continue
+        sys = case2(vehicle, pt.speed)
+        T2 = pt.T[3:]
+        assert np.abs(T2 @ sys.D).max() < 1e-9 * np.abs(T2).max() * np.abs(sys.D).max()
+        # zero dynamics = invariant zeros (strong detectability seen from the observer)
+        zeros = list(invariant_zeros(sys))
+        for ev in np.linalg.eigvals(pt.A22):
+            nearest = min(zeros, key=lambda z, ev=ev: abs(z - ev))
+            assert abs(nearest - ev) < 1e-6 * max(1.0, abs(ev))
+            zeros.remove(nearest)
+        assert abs(np.linalg.det(pt.Dbar)) > 1e-3
+        At = sys.A - pt.L @ sys.C
+        assert np.linalg.eigvals(At).real.max() <= -15.0 + 1e-6  # prescribed decay rate
+
+
+def test_unknown_input_reconstruction_is_exact_given_exact_derivatives(extras, vehicle):
+    """Eq. 15: with the true error xi and its derivative, [phi, tau] = Dbar^-1 (xi_dot[1,2] - Abar xi)."""
+    rng = np.random.default_rng(3)
+    for pt in extras["uihosmo"].points[4::8]:
+        sys = case2(vehicle, pt.speed)
+        At = sys.A - pt.L @ sys.C
+        e = rng.normal(size=7) * np.array([0.01, 0.3, 0.1, 0.3, 0.1, 500, 500])
+        zeta = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-40, 40)])
+        xi_dot = pt.T @ (At @ e + sys.D @ zeta)
+        rebuilt = pt.Dbar_inv @ (xi_dot[[1, 2]] - pt.Abar @ (pt.T @ e))
+        assert np.allclose(rebuilt, zeta, rtol=1e-7, atol=1e-9)
+
+
+def test_complement_is_continuous_in_speed(vehicle):
+    rows = (1, 2, 3, 5)
+    prev = None
+    for v in np.arange(20, 130, 0.25):
+        T2 = complement_rows(case2(vehicle, kmh(v)).D, rows)
+        if prev is not None:
+            assert np.abs(T2 - prev).max() < 0.02
+        prev = T2
+
+
+def test_lmi_solution_satisfies_the_inequalities(extras):
+    sol = extras["lmi_solution"]
+    assert sol.feasible
+    assert np.linalg.eigvalsh(sol.P).min() > 0
+    for i in (0, 1):
+        assert np.linalg.eigvalsh(sol.lmi34(i)).max() < 0
+        assert np.linalg.eigvalsh(sol.disk_lmi(i)).max() < 0
+    assert np.linalg.eigvalsh(sol.lmi33()).min() > -1e-7
+    assert sol.residual < 1e-2
+
+
+def test_lmi_lipschitz_bound_holds(extras, vehicle, settings):
+    sol = extras["lmi_solution"]
+    from ptw_rt.design.lpv_lmi import STATE_SCALE
+
+    S = np.diag(STATE_SCALE)
+    bound = settings.estimator.stiffness_deviation_bound * np.array(vehicle.nominal_stiffness())
+    for J in lipschitz_jacobians(lpv_model(vehicle), sol.speed_vertices, bound):
+        Js = np.linalg.solve(S, J @ S)
+        assert np.linalg.eigvalsh(sol.R - Js.T @ sol.Q @ Js).min() > -1e-6 * np.abs(sol.R).max()
+
+
+def test_adaptive_gain_stabilises_every_speed_in_continuous_time(extras, vehicle, design):
+    from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain
+
+    m, C = lpv_model(vehicle), output_matrix(vehicle)
+    sol = extras["lmi_solution"]
+    for u in np.linspace(design.grid[0], design.grid[-1], 37):
+        ev = np.linalg.eigvals(m.A(u) - scheduled_gain(sol, u) @ C)
+        assert ev.real.max() < -sol.decay_rate + 1e-6
+        assert np.abs(ev).max() < 2 * sol.pole_disk_radius
+
+
+def test_zoh_is_exact():
+    a, b, dt = -7.0, 2.0, 0.01
+    Phi, Gamma = zoh(np.array([[a]]), np.array([[b]]), dt)
+    assert Phi[0, 0] == pytest.approx(np.exp(a * dt), rel=1e-12)
+    assert Gamma[0, 0] == pytest.approx(b * (np.exp(a * dt) - 1) / a, rel=1e-12)
+
+
+def test_forward_euler_at_10ms_would_be_unstable(vehicle):
+    """Why the design discretises exactly: the tyre modes at 130 km/h are faster than 2/dt."""
+    A, _ = state_space(vehicle, kmh(130))
+    assert spectral_radius(np.eye(8) + 0.01 * A) > 1.0
+    Phi, _ = zoh(A, np.zeros((8, 1)), 0.01)
+    assert spectral_radius(Phi) < 1.0
+
+
+def test_interpolation_rule():
+    grid = np.array([1.0, 2.0, 4.0])
+    table = np.array([[0.0], [1.0], [3.0]])
+    assert interpolate(grid, table, 3.0)[0] == pytest.approx(2.0)
+    assert interpolate(grid, table, 0.0)[0] == 0.0 and interpolate(grid, table, 9.0)[0] == 3.0
+
+
+def test_design_check_cli_json():
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt.cli", "design", "--check", "--json"], capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(proc.stdout)
+    assert len(data["grid_kmh"]) == len(data["uihosmo"]["spectral_radius"]) == len(data["adaptive"]["spectral_radius"])
+    assert data["adaptive"]["lmi"]["feasible"] is True
+    assert {"slack", "residual"} <= set(data["adaptive"]["lmi"])
+    assert data["between_grid"]["max_spectral_radius"] < 1
+
+
+def test_design_cli_writes_a_loadable_file(tmp_path, settings):
+    out = tmp_path / "d.npz"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt.cli", "design", "--out", str(out)], capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert load_design(out, settings.config_hash).grid.shape == (49,)
