@@ -90,7 +90,7 @@ def test_protect_matches_autosar_e2e_short_frames(payload: bytes, data_id: int, 
 @settings(max_examples=400, deadline=None)
 @given(payload=frames, data_id=data_ids)
 def test_check_matches_autosar_e2e(payload: bytes, data_id: int) -> None:
-    """On arbitrary (mostly unprotected) frames both checks agree."""
+    """On arbitrary (mostly unprotected) frames both checks agree (including the counter-15 rejection)."""
     assert check_p11(data_id, payload) == p11.e2e_p11_check(bytearray(payload), data_id)
 
 
@@ -210,6 +210,24 @@ def test_counter_delta() -> None:
 def test_protect_rejects_counter_out_of_range(bad: int) -> None:
     with pytest.raises(ValueError):
         protect_p11(0x300, bytearray(8), bad)
+
+
+def test_check_rejects_counter_15_even_with_correct_crc() -> None:
+    for high in (0x00, 0x50, 0xF0):
+        frame = bytearray(8)
+        frame[1] = high | 0x0F
+        frame[0] = profile11_crc(0x300, frame)
+        assert not check_p11(0x300, bytes(frame))
+        assert not p11.e2e_p11_check(bytearray(frame), 0x300)
+
+
+@settings(max_examples=300, deadline=None)
+@given(payload=frames, data_id=data_ids)
+def test_check_agrees_with_autosar_e2e_when_crc_is_right(payload: bytes, data_id: int) -> None:
+    """Random frames almost never carry a valid CRC: force it, so the counter handling is compared too."""
+    frame = bytearray(payload)
+    frame[0] = profile11_crc(data_id, frame)
+    assert check_p11(data_id, bytes(frame)) == p11.e2e_p11_check(bytearray(frame), data_id)
 
 
 def test_check_rejects_too_short() -> None:

@@ -33,6 +33,7 @@ __all__ = [
 
 DEFAULT_ESTIMATOR_NODE = "PTW_RT"
 _STD_ID_MASK = 0x7FF
+_MISSING = object()
 
 
 class DbcError(ValueError):
@@ -329,8 +330,8 @@ class FrameCodec:
         get = signals.get
         defaults = info.defaults
         for name, lo, hi in info.limits:
-            v = get(name)
-            if v is None:
+            v = get(name, _MISSING)
+            if v is _MISSING:
                 v = defaults[name]
             else:
                 try:
@@ -406,8 +407,8 @@ class FrameCodec:
         name, values = self.decode(frame_id, data, extended=extended)
         info = self._by_name[name]
         if info.crc_signal is not None:
-            if not check_p11(frame_id, data):
-                raise FrameDecodeError(FrameDecodeError.CRC, frame_id)
             if values[info.counter_signal] > info.counter_max:
                 raise FrameDecodeError(FrameDecodeError.GARBAGE, frame_id, "E2E counter 15")
+            if not check_p11(frame_id, data):
+                raise FrameDecodeError(FrameDecodeError.CRC, frame_id)
         return name, values

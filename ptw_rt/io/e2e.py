@@ -93,8 +93,12 @@ def protect_p11(data_id: int, data: bytearray, counter: int) -> None:
 
 
 def check_p11(data_id: int, data: bytes) -> bool:
-    """True if byte 0 is the correct Profile 11 CRC of ``data`` for ``data_id`` (stateless: CRC only)."""
-    if len(data) < 2:
+    """Stateless Profile 11 check: byte 0 is the correct CRC of ``data`` for ``data_id`` and the counter is 0..14.
+
+    A counter of 15 is never sent, so such a frame fails even with a correct CRC (as in ``e2e.p11.e2e_p11_check``).
+    Counter sequence (repetition, loss) needs state: see ``P11Checker``.
+    """
+    if len(data) < 2 or data[1] & 0x0F > COUNTER_MAX:
         return False
     return data[0] == profile11_crc(data_id, data)
 
@@ -144,11 +148,9 @@ class P11Checker:
         self._last = None
 
     def check(self, data: bytes) -> P11Status:
-        if not check_p11(self.data_id, data):
+        if not check_p11(self.data_id, data):  # wrong CRC or counter 15
             return P11Status.ERROR
         counter = data[1] & 0x0F
-        if counter > COUNTER_MAX:
-            return P11Status.ERROR
         last, self._last = self._last, counter
         if last is None:
             return P11Status.INITIAL
