@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import sys
 from typing import Any
 
 import numpy as np
@@ -12,6 +10,7 @@ from ptw_rt.analysis.modes import classify_modes
 from ptw_rt.analysis.observability import decoupling_matrix, invariant_zeros, relative_degree
 from ptw_rt.model.parameters import VehicleParameters, load_vehicle
 from ptw_rt.model.sharp import case1, case2, full_system, kmh, state_space
+from ptw_rt.output import emit
 
 
 def _pairs(values: np.ndarray) -> list[list[float]]:
@@ -85,10 +84,5 @@ def format_table(result: dict[str, Any]) -> str:
 def run_analyze(args) -> int:
     p = load_vehicle(args.config)
     result = analyze(p, args.speeds)
-    if args.json:
-        json.dump(result, sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print(f"Lateral model of '{p.name}' ({args.config})")
-        print(format_table(result))
+    emit(result, args.json, f"Lateral model of '{p.name}' ({args.config})\n" + format_table(result))
     return 0

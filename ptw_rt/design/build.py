@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from pathlib import Path
@@ -16,6 +15,7 @@ from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
 from ptw_rt.design.uihosmo import design_grid
 from ptw_rt.errors import UserFacingError
 from ptw_rt.model.sharp import lpv_model
+from ptw_rt.output import emit
 from ptw_rt.paths import DEFAULT_DESIGN
 from ptw_rt.schema import ConfigError
 from ptw_rt.settings import Settings, load_settings
@@ -179,12 +179,7 @@ def run_design(args) -> int:
             source = "fresh design (no design file at " + str(path) + ")"
         result = check_design(data)
         result["design_source"] = source
-        if args.json:
-            json.dump(result, sys.stdout)
-            sys.stdout.write("\n")
-        else:
-            print(f"Design check of {source}")
-            print(format_check(result))
+        emit(result, args.json, f"Design check of {source}\n" + format_check(result))
         return 0 if result["stable"] else 1
     out = args.out or DEFAULT_DESIGN
     data, _ = make_design(settings)
