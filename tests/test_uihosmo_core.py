@@ -49,6 +49,8 @@ def run(vehicle, design, dt, lipschitz, speed_kmh=100.0, quantum=0.0, duration=8
                 design.uh_Dbar_inv,
                 design.uh_Phi22,
                 design.uh_Gamma21,
+                design.uh_Ramp_y,
+                design.uh_Ramp21,
                 LAMBDA_STEER,
                 LAMBDA_YAW,
                 1,
@@ -80,10 +82,18 @@ def test_near_exact_reconstruction_when_sampled_fast(vehicle, design_1khz):
 
 
 def test_reconstruction_at_100hz_with_the_committed_design(vehicle):
-    """At 100 Hz sampling limits the differentiator; this pins today's accuracy (see the issue notes)."""
+    """At 100 Hz the first-order hold of y and the ramp hold of theta_1 keep the discrete observer close
+    to the continuous one; the 10-bit encoder then dominates the error."""
     design = load_design(DEFAULT_DESIGN)
-    phi_rmse_deg, tau_rmse, _ = run(vehicle, design, 0.01, 50.0)
-    assert phi_rmse_deg < 1.2
-    assert tau_rmse < 4.0
-    phi_q, tau_q, _ = run(vehicle, design, 0.01, 50.0, quantum=2 * np.pi / 1024)
-    assert phi_q < 2.0 and tau_q < 10.0
+    phi_rmse_deg, tau_rmse, _ = run(vehicle, design, 0.01, 5.0)
+    assert phi_rmse_deg < 0.2
+    assert tau_rmse < 0.5
+    phi_q, tau_q, _ = run(vehicle, design, 0.01, 5.0, quantum=2 * np.pi / 1024)
+    assert phi_q < 1.5 and tau_q < 6.0
+
+
+def test_paper_lipschitz_constant_fails_at_100hz(vehicle):
+    """Why L is not the paper's 5000: at 10 ms sampling the differentiator error swamps eq. 15."""
+    design = load_design(DEFAULT_DESIGN)
+    phi_rmse_deg, _, phi_peak_deg = run(vehicle, design, 0.01, 5000.0)
+    assert phi_rmse_deg > phi_peak_deg

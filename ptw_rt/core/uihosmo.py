@@ -6,11 +6,13 @@ Per cycle, from the measured steer angle delta, ground yaw rate r and speed u:
      give theta_1 = [e1, e1', e2] and the derivatives d/dt xi_12 = e1'', d/dt xi_13 = e2';
   3. x_hat = z + T^-1 [theta_1; theta_2]                                  (eq. 12)
   4. [phi, tau] = Dbar^-1 ([e1'', e2'] - Abar [theta_1; theta_2])         (eq. 15)
-  5. z <- Phi z + Gamma y, theta_2 <- Phi22 theta_2 + Gamma21 theta_1    (exact ZOH)
+  5. z <- Phi z + Gamma y + Ramp_y (y - y_prev)                            (first-order hold of y)
+     theta_2 <- Phi22 theta_2 + Gamma21 theta_1 + Ramp21 d/dt theta_1      (ramp hold of theta_1)
 Every matrix is interpolated linearly in u between design grid points.
 
 State vector layout (float64, preallocated by `new_state`):
-  [0:7] z   [7:11] theta_2   [11:15] steer differentiator   [15:18] yaw differentiator   [18] initialised
+  [0:7] z   [7:11] theta_2   [11:15] steer differentiator   [15:18] yaw differentiator
+  [18] initialised   [19:21] previous [delta, r]
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ TH0, TH1 = 7, 11
 V10, V11 = 11, 15
 V20, V21 = 15, 18
 INIT = 18
-STATE_SIZE = 19
+Y_PREV = 19
+STATE_SIZE = 21
 
 # reduced-state indices [delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr]
 X_DELTA, X_VY, X_R, X_PHI_DOT, X_DELTA_DOT, X_FYF, X_FYR = range(7)
@@ -79,6 +82,8 @@ def uihosmo_step(
     Dbar_inv: np.ndarray,
     Phi22: np.ndarray,
     Gamma21: np.ndarray,
+    Ramp_y: np.ndarray,
+    Ramp21: np.ndarray,
     lam_steer: np.ndarray,
     lam_yaw: np.ndarray,
     diff_substeps: int,
@@ -92,6 +97,8 @@ def uihosmo_step(
         state[TH0:TH1] = 0.0
         hdd_init(state[V10:V11], 0.0)
         hdd_init(state[V20:V21], 0.0)
+        state[Y_PREV] = delta
+        state[Y_PREV + 1] = r
         state[INIT] = 1.0
     z = state[Z0:Z1]
     th2 = state[TH0:TH1]
@@ -129,8 +136,11 @@ def uihosmo_step(
 
     # propagate z and theta_2 to the next sample (exact ZOH, inputs held)
     z_next = scratch[7:14]
+    d_delta = delta - state[Y_PREV]
+    d_r = r - state[Y_PREV + 1]
     for a in range(7):
         acc = _lerp(Gamma, i, w, a, 0) * delta + _lerp(Gamma, i, w, a, 1) * r
+        acc += _lerp(Ramp_y, i, w, a, 0) * d_delta + _lerp(Ramp_y, i, w, a, 1) * d_r
         for b in range(7):
             acc += _lerp(Phi, i, w, a, b) * z[b]
         z_next[a] = acc
@@ -141,8 +151,13 @@ def uihosmo_step(
             acc += _lerp(Phi22, i, w, a, b) * th2[b]
         for b in range(3):
             acc += _lerp(Gamma21, i, w, a, b) * theta[b]
+        # d/dt theta_1 = [e1', e1'', e2'] from the differentiators
+        acc += _lerp(Ramp21, i, w, a, 0) * v1[1] + _lerp(Ramp21, i, w, a, 1) * v1[2]
+        acc += _lerp(Ramp21, i, w, a, 2) * v2[1]
         th_next[a] = acc
     for a in range(7):
         z[a] = z_next[a]
     for a in range(4):
         th2[a] = th_next[a]
+    state[Y_PREV] = delta
+    state[Y_PREV + 1] = r

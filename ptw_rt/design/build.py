@@ -76,6 +76,8 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         uh_Dbar_inv=np.array([pt.Dbar_inv for pt in uh.points]),
         uh_Phi22=np.array([pt.Phi22 for pt in uh.points]),
         uh_Gamma21=np.array([pt.Gamma21 for pt in uh.points]),
+        uh_Ramp_y=np.array([pt.Ramp_y for pt in uh.points]),
+        uh_Ramp21=np.array([pt.Ramp21 for pt in uh.points]),
         uh_complement_rows=np.array(uh.complement_rows),
         uh_differentiator_lambda=est.differentiator_lambda,
         ad_Phi=np.array(ad_Phi),

@@ -22,6 +22,22 @@ def zoh(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray
     return expm[:n, :n], expm[:n, n:].reshape(B.shape)
 
 
+def ramp_response(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
+    """Integral of e^{A (dt - s)} B s over [0, dt]: the response to an input ramping from 0 within one step.
+
+    With it an input that varies within the sample (slope known or extrapolated)
+    is integrated exactly to first order: x[k+1] = Phi x + Gamma u[k] + Ramp u_dot[k].
+    """
+    n = A.shape[0]
+    B2 = B.reshape(n, -1)
+    m = B2.shape[1]
+    block = np.zeros((n + 2 * m, n + 2 * m))
+    block[:n, :n] = A * dt
+    block[:n, n : n + m] = B2 * dt
+    block[n : n + m, n + m :] = np.eye(m) * dt
+    return sla.expm(block)[:n, n + m :].reshape(B.shape)
+
+
 def spectral_radius(M: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(M)))) if M.size else 0.0
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from ptw_rt.errors import UserFacingError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -41,6 +41,8 @@ class DesignData:
     uh_Dbar_inv: np.ndarray  # (G, 2, 2)
     uh_Phi22: np.ndarray  # (G, 4, 4)
     uh_Gamma21: np.ndarray  # (G, 4, 3)
+    uh_Ramp_y: np.ndarray  # (G, 7, 2) first-order hold of y
+    uh_Ramp21: np.ndarray  # (G, 4, 3) ramp of theta_1
     uh_complement_rows: np.ndarray  # (4,)
     uh_differentiator_lambda: float
     # LPV adaptive observer (state [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr])

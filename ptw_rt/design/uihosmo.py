@@ -27,7 +27,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ptw_rt.analysis.observability import invariant_zeros
-from ptw_rt.design.discretize import spectral_radius, zoh
+from ptw_rt.design.discretize import ramp_response, spectral_radius, zoh
 from ptw_rt.model.parameters import VehicleParameters
 from ptw_rt.model.sharp import UnknownInputSystem, case2
 
@@ -61,6 +61,8 @@ class UihosmoPoint:
     Gamma: np.ndarray  # (7, 2) ZOH input matrix of L y
     Phi22: np.ndarray  # (4, 4) ZOH of A22
     Gamma21: np.ndarray  # (4, 3) ZOH input matrix of theta_1
+    Ramp_y: np.ndarray  # (7, 2) first-order hold of y: times (y[k] - y[k-1])
+    Ramp21: np.ndarray  # (4, 3) ramp of theta_1 within the step: times d/dt theta_1
 
     @property
     def spectral_radius(self) -> float:
@@ -161,11 +163,17 @@ def design_point(
     Dbar = D_xi[[1, 2], :]
     A21 = A_xi[N_XI1:, :N_XI1]
     A22 = A_xi[N_XI1:, N_XI1:]
+    # Inputs are not constant over 10 ms: theta_2 reacts to theta_1 through zeros as fast
+    # as -500 1/s. Holding theta_1 for a step costs ~1 deg of roll RMS on a lane change;
+    # a ramp hold (the differentiator supplies d/dt theta_1) and a first-order hold of
+    # y in the pre-observer bring the discrete observer back to the continuous one.
     Phi, Gamma = zoh(At, L, dt)
+    Ramp_y = ramp_response(At, L, dt) / dt
     if detectable:
         Phi22, Gamma21 = zoh(A22, A21, dt)
+        Ramp21 = ramp_response(A22, A21, dt)
     else:
-        Phi22, Gamma21 = np.zeros_like(A22), np.zeros_like(A21)
+        Phi22, Gamma21, Ramp21 = np.zeros_like(A22), np.zeros_like(A21), np.zeros_like(A21)
     return UihosmoPoint(
         speed=speed,
         L=L,
@@ -181,6 +189,8 @@ def design_point(
         Gamma=Gamma,
         Phi22=Phi22,
         Gamma21=Gamma21,
+        Ramp_y=Ramp_y,
+        Ramp21=Ramp21,
     )
 
 
