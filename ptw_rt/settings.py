@@ -40,6 +40,9 @@ ESTIMATOR_SCHEMA = Section(
                 "pole_disk_radius": Number("1/s", gt=0),
                 "stiffness_deviation_bound": Number("", gt=0, lt=1),
                 "adaptation_gain": NumberList(Number("", gt=0), min_len=4, max_len=4),
+                "excitation_slip_velocity": Number("m/s", gt=0),
+                "excitation_camber_velocity": Number("m/s rad", gt=0),
+                "excitation_time_constant": Number("s", gt=0),
             }
         ),
     }
@@ -62,6 +65,9 @@ class EstimatorTuning:
     pole_disk_radius: float
     stiffness_deviation_bound: float
     adaptation_gain: tuple[float, ...]
+    excitation_slip_velocity: float
+    excitation_camber_velocity: float
+    excitation_time_constant: float
 
     def speed_grid_ms(self) -> np.ndarray:
         """Design grid in m/s; the end points are always included."""
@@ -102,6 +108,9 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         pole_disk_radius=ad["pole_disk_radius"],
         stiffness_deviation_bound=ad["stiffness_deviation_bound"],
         adaptation_gain=tuple(ad["adaptation_gain"]),
+        excitation_slip_velocity=ad["excitation_slip_velocity"],
+        excitation_camber_velocity=ad["excitation_camber_velocity"],
+        excitation_time_constant=ad["excitation_time_constant"],
     )
 
 

@@ -89,6 +89,15 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         ad_gamma=np.array(est.adaptation_gain),
         ad_theta_nominal=nominal,
         ad_theta_bound=est.stiffness_deviation_bound * nominal,
+        ad_pe_threshold=np.array(
+            [
+                est.excitation_slip_velocity / p.sigma_f,
+                est.excitation_camber_velocity / p.sigma_f,
+                est.excitation_slip_velocity / p.sigma_r,
+                est.excitation_camber_velocity / p.sigma_r,
+            ]
+        ),
+        ad_pe_forgetting=float(np.exp(-dt / est.excitation_time_constant)),
         ad_L_vertices=np.array(sol.L_vertices),
         ad_speed_vertices=np.array(sol.speed_vertices),
         ad_lmi_slack=sol.slack,

@@ -14,7 +14,7 @@ import numpy as np
 
 from ptw_rt.errors import UserFacingError
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -55,6 +55,8 @@ class DesignData:
     ad_gamma: np.ndarray  # (4,) adaptation gains
     ad_theta_nominal: np.ndarray  # (4,) C_af, C_gf, C_ar, C_gr
     ad_theta_bound: np.ndarray  # (4,) |Theta| bound
+    ad_pe_threshold: np.ndarray  # (4,) RMS of each regressor column needed to adapt
+    ad_pe_forgetting: float  # per-sample forgetting factor of the excitation mean square
     ad_L_vertices: np.ndarray  # (2, 8, 6)
     ad_speed_vertices: np.ndarray  # (2,)
     ad_lmi_slack: float
