@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ptw_rt.core.uihosmo import _lerp, grid_position
+from ptw_rt.core.schedule import grid_position, lerp
 
 X0, X1 = 0, 8
 TH0, TH1 = 8, 12
@@ -116,11 +116,11 @@ def adaptive_step(
     x_next = scratch[0:8]
     for a in range(8):
         acc = ((1.0 - w) * B_tau[i, a] + w * B_tau[i + 1, a]) * tau
-        acc += _lerp(B_theta, i, w, a, 0) * f0 + _lerp(B_theta, i, w, a, 1) * f1
+        acc += lerp(B_theta, i, w, a, 0) * f0 + lerp(B_theta, i, w, a, 1) * f1
         for b in range(N_Y):
-            acc += _lerp(B_y, i, w, a, b) * y[b]
+            acc += lerp(B_y, i, w, a, b) * y[b]
         for b in range(8):
-            acc += _lerp(Phi, i, w, a, b) * x[b]
+            acc += lerp(Phi, i, w, a, b) * x[b]
         x_next[a] = acc
 
     # adaptation law (eq. 30), per excited parameter, projected onto the physical bounds

@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit
 
 from ptw_rt.core.differentiator import hdd_init, hdd_lambda, hdd_step
+from ptw_rt.core.schedule import grid_position, lerp
 
 Z0, Z1 = 0, 7
 TH0, TH1 = 7, 11
@@ -43,25 +44,6 @@ LAMBDA_YAW = hdd_lambda(2)
 
 def new_state() -> np.ndarray:
     return np.zeros(STATE_SIZE)
-
-
-@njit(cache=True)
-def grid_position(grid: np.ndarray, u: float) -> tuple[int, float]:
-    """Index of the grid interval holding u and the weight of its upper end (uniform grid, clamped)."""
-    n = grid.shape[0]
-    step = (grid[n - 1] - grid[0]) / (n - 1)
-    s = (u - grid[0]) / step
-    if not s > 0.0:  # also catches NaN
-        return 0, 0.0
-    if s >= n - 1:
-        return n - 2, 1.0
-    i = int(s)
-    return i, s - i
-
-
-@njit(cache=True)
-def _lerp(table: np.ndarray, i: int, w: float, r: int, c: int) -> float:
-    return (1.0 - w) * table[i, r, c] + w * table[i + 1, r, c]
 
 
 @njit(cache=True)
@@ -122,38 +104,38 @@ def uihosmo_step(
     for a in range(7):
         acc = z[a]
         for b in range(7):
-            acc += _lerp(T_inv, i, w, a, b) * theta[b]
+            acc += lerp(T_inv, i, w, a, b) * theta[b]
         out[a] = acc
 
     # [phi, tau] = Dbar^-1 ([v1_2, v2_1] - Abar theta)
     rhs0 = v1[2]
     rhs1 = v2[1]
     for b in range(7):
-        rhs0 -= _lerp(Abar, i, w, 0, b) * theta[b]
-        rhs1 -= _lerp(Abar, i, w, 1, b) * theta[b]
-    out[OUT_PHI] = _lerp(Dbar_inv, i, w, 0, 0) * rhs0 + _lerp(Dbar_inv, i, w, 0, 1) * rhs1
-    out[OUT_TAU] = _lerp(Dbar_inv, i, w, 1, 0) * rhs0 + _lerp(Dbar_inv, i, w, 1, 1) * rhs1
+        rhs0 -= lerp(Abar, i, w, 0, b) * theta[b]
+        rhs1 -= lerp(Abar, i, w, 1, b) * theta[b]
+    out[OUT_PHI] = lerp(Dbar_inv, i, w, 0, 0) * rhs0 + lerp(Dbar_inv, i, w, 0, 1) * rhs1
+    out[OUT_TAU] = lerp(Dbar_inv, i, w, 1, 0) * rhs0 + lerp(Dbar_inv, i, w, 1, 1) * rhs1
 
     # propagate z and theta_2 to the next sample (exact ZOH, inputs held)
     z_next = scratch[7:14]
     d_delta = delta - state[Y_PREV]
     d_r = r - state[Y_PREV + 1]
     for a in range(7):
-        acc = _lerp(Gamma, i, w, a, 0) * delta + _lerp(Gamma, i, w, a, 1) * r
-        acc += _lerp(Ramp_y, i, w, a, 0) * d_delta + _lerp(Ramp_y, i, w, a, 1) * d_r
+        acc = lerp(Gamma, i, w, a, 0) * delta + lerp(Gamma, i, w, a, 1) * r
+        acc += lerp(Ramp_y, i, w, a, 0) * d_delta + lerp(Ramp_y, i, w, a, 1) * d_r
         for b in range(7):
-            acc += _lerp(Phi, i, w, a, b) * z[b]
+            acc += lerp(Phi, i, w, a, b) * z[b]
         z_next[a] = acc
     th_next = scratch[14:18]
     for a in range(4):
         acc = 0.0
         for b in range(4):
-            acc += _lerp(Phi22, i, w, a, b) * th2[b]
+            acc += lerp(Phi22, i, w, a, b) * th2[b]
         for b in range(3):
-            acc += _lerp(Gamma21, i, w, a, b) * theta[b]
+            acc += lerp(Gamma21, i, w, a, b) * theta[b]
         # d/dt theta_1 = [e1', e1'', e2'] from the differentiators
-        acc += _lerp(Ramp21, i, w, a, 0) * v1[1] + _lerp(Ramp21, i, w, a, 1) * v1[2]
-        acc += _lerp(Ramp21, i, w, a, 2) * v2[1]
+        acc += lerp(Ramp21, i, w, a, 0) * v1[1] + lerp(Ramp21, i, w, a, 1) * v1[2]
+        acc += lerp(Ramp21, i, w, a, 2) * v2[1]
         th_next[a] = acc
     for a in range(7):
         z[a] = z_next[a]
