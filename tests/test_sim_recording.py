@@ -137,3 +137,30 @@ def test_cli_writes_the_files(tmp_path, capsys, plot):
     assert "real-time factor" in out and "stiffness=0.8" in out
     truth = read_truth_csv(tmp_path / "urban.truth.csv")
     assert truth["speed"][0] == 0.0  # urban starts at rest
+
+
+NO_DESIGN_EXTRA = """
+import importlib.abc, sys, tempfile
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] in ("scipy", "cvxpy", "matplotlib"):
+            raise ImportError("blocked " + name)
+sys.meta_path.insert(0, Block())
+from ptw_rt.cli import main
+out = tempfile.mkdtemp()
+assert main(["simulate", "--scenario", "urban", "--duration", "1", "--out", out]) == 0
+assert main(["simulate", "--scenario", "urban", "--duration", "1", "--out", out, "--plot"]) == 2
+assert not [m for m in sys.modules if m.startswith(("scipy", "cvxpy"))]
+print("OK")
+"""
+
+
+def test_simulator_runs_without_scipy_cvxpy_and_matplotlib():
+    """The demo has only the runtime dependencies (numba's own np.linalg would need scipy's LAPACK)."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", NO_DESIGN_EXTRA], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip().endswith("OK")
+    assert "needs matplotlib" in res.stderr

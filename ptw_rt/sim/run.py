@@ -34,7 +34,7 @@ def _bar(label: str):
     return show
 
 
-def plot_ride(ride: Ride, path: Path) -> None:
+def _pyplot():
     try:
         import matplotlib
 
@@ -44,6 +44,11 @@ def plot_ride(ride: Ride, path: Path) -> None:
         raise UserFacingError(
             "--plot needs matplotlib, which is not installed; install the plot extra: pip install 'ptw-rt[plot]'"
         ) from None
+    return plt
+
+
+def plot_ride(ride: Ride, path: Path) -> None:
+    plt = _pyplot()
     T = ride.truth
     t = T["t"]
     fig, ax = plt.subplots(6, 1, figsize=(11, 14), sharex=True)
@@ -84,6 +89,8 @@ def run_simulate(args) -> int:
         raise UserFacingError(f"give --scenario NAME (or --list); available: {', '.join(SCENARIOS)}")
     sc = get_scenario(args.scenario)
     pert = parse_perturbations(args.perturb)
+    if args.plot:
+        _pyplot()  # fail before simulating, not after
     if args.duration is not None and not (0.0 < args.duration <= 3600.0):
         raise UserFacingError(f"--duration must be within (0, 3600] s, got {args.duration}")
     config = Path(args.config)
