@@ -70,6 +70,83 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--plot", action="store_true", help="also draw the truth (needs the plot extra)")
     p.set_defaults(handler="ptw_rt.sim.run:run_simulate")
+
+    p = sub.add_parser(
+        "evaluate",
+        help="simulate a scenario, run the estimator over it and score it (and the baselines) against truth",
+        description="Same code path as replay: frames -> Sample -> jitted step -> Estimates, errors after settle_s.",
+    )
+    p.add_argument("--scenario", help="scenario name (see `ptw-rt simulate --list`)")
+    p.add_argument("--all", action="store_true", help="every scenario, one table")
+    p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
+    p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE", help="plant perturbation")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML")
+    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(handler="ptw_rt.eval.evaluate:run_evaluate")
+
+    p = sub.add_parser(
+        "report",
+        help="plots of estimates vs truth (and baselines) for a scenario, with a markdown summary",
+    )
+    p.add_argument("--scenario", required=True, help="scenario name")
+    p.add_argument("--out", type=Path, required=True, help="directory for the PNGs and summary.md")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
+    p.add_argument("--design-file", type=Path, default=None)
+    p.set_defaults(handler="ptw_rt.eval.report:run_report")
+
+    p = sub.add_parser(
+        "run",
+        help="the daemon: 100 Hz loop on a CAN bus, estimates published as DBC frames",
+    )
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="config YAML (vehicle, estimator, runtime)")
+    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
+    p.add_argument("--interface", default=None, help="override runtime.bus.interface")
+    p.add_argument("--channel", default=None, help="override runtime.bus.channel")
+    p.add_argument("--state-file", type=Path, default=None, help="override runtime.state_file")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run forever)")
+    p.add_argument("--check-config", action="store_true", help="validate config and design file, then exit")
+    p.set_defaults(handler="ptw_rt.runtime.daemon:run_daemon")
+
+    p = sub.add_parser(
+        "replay",
+        help="offline replay of candump logs through the same cycle as the daemon",
+    )
+    p.add_argument("logs", nargs="+", type=Path, help="candump -L logs or directories of them")
+    p.add_argument("--out", type=Path, required=True, help="output log (one input) or directory (several)")
+    p.add_argument("--csv", type=Path, default=None, help="also write the decoded estimates as CSV (file or dir)")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
+    p.add_argument("--design-file", type=Path, default=None)
+    p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(handler="ptw_rt.runtime.replay:run_replay")
+
+    p = sub.add_parser(
+        "monitor",
+        help="live decoder of the estimator's frames: counters, CRCs, frozen or corrupted estimator",
+    )
+    p.add_argument("--interface", default="socketcan")
+    p.add_argument("--channel", default="can0")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--json", action="store_true", help="one JSON line per status period")
+    p.set_defaults(handler="ptw_rt.runtime.monitor:run_monitor")
+
+    p = sub.add_parser(
+        "demo",
+        help="no hardware needed: a simulated ride played on a virtual CAN bus into the real daemon loop",
+    )
+    p.add_argument("--scenario", default="dlc_100")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed (1 = real time)")
+    p.add_argument("--out", type=Path, default=Path("out/demo"), help="where the logs and report go")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
+    p.set_defaults(handler="ptw_rt.runtime.demo:run_demo")
+
+    p = sub.add_parser("bench", help="speed figures of the step, the cycle, the loop and replay (JSON)")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--quick", action="store_true", help="shorter runs (figures less stable)")
+    p.set_defaults(handler="ptw_rt.bench:run_bench")
     return parser
 
 

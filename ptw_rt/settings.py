@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ptw_rt.model.parameters import VEHICLE_SCHEMA, VehicleParameters, vehicle_from_mapping
+from ptw_rt.runtime.config import RUNTIME_SCHEMA
 from ptw_rt.schema import ConfigError, Number, NumberList, Section, canonical_hash, read_yaml, validate
 
 ESTIMATOR_SCHEMA = Section(
@@ -45,10 +46,46 @@ ESTIMATOR_SCHEMA = Section(
                 "excitation_time_constant": Number("s", gt=0),
             }
         ),
+        "roll_fusion_time_constant": Number("s", gt=0),
+        "derivative_filter_hz": Number("Hz", gt=0, lt=50),
+        "supervisor": Section(
+            {
+                "converge_time": Number("s", ge=0),
+                "gps_hold_time": Number("s", ge=0),
+                "reason_hold_time": Number("s", ge=0),
+                "stiffness_valid_after": Number("s", ge=0),
+                "max_roll": Number("rad", gt=0, le=1.5),
+                "max_rider_torque": Number("N m", gt=0),
+                "max_tyre_force": Number("N", gt=0),
+                "max_lateral_velocity": Number("m/s", gt=0),
+            }
+        ),
     }
 )
 
-CONFIG_SCHEMA = Section({"vehicle": VEHICLE_SCHEMA, "estimator": ESTIMATOR_SCHEMA})
+# Calibration of the sensors as mounted on this vehicle: read by the estimator's
+# conditioning every cycle, not by the design, so not part of the design hash.
+SENSORS_SCHEMA = Section(
+    fields={},
+    optional={
+        "steer_zero_count": (Number("count", ge=0, lt=1024), 512.0),
+        "steer_counts_per_rev": (Number("count", integer=True, gt=0), 1024),
+        "imu_height": (Number("m", ge=0, le=2), 0.5),
+        "imu_forward": (Number("m", ge=-2, le=2), 0.0),
+        "gps_latency": (Number("s", ge=0, le=1), 0.1),
+        "speed_filter_gain": (Number("", gt=0, le=1), 0.3),
+        "speed_bias_gain": (Number("", ge=0, le=1), 0.02),
+    },
+)
+
+CONFIG_SCHEMA = Section(
+    {"vehicle": VEHICLE_SCHEMA, "estimator": ESTIMATOR_SCHEMA},
+    optional={
+        "sensors": (SENSORS_SCHEMA, SENSORS_SCHEMA.check("sensors", {})),
+        "runtime": (RUNTIME_SCHEMA, RUNTIME_SCHEMA.check("runtime", {})),
+    },
+)
+DESIGN_SECTIONS = ("vehicle", "estimator")  # what the design file depends on (the config hash)
 
 
 @dataclass(frozen=True)
@@ -68,6 +105,16 @@ class EstimatorTuning:
     excitation_slip_velocity: float
     excitation_camber_velocity: float
     excitation_time_constant: float
+    roll_fusion_time_constant: float
+    derivative_filter_hz: float
+    converge_time: float
+    gps_hold_time: float
+    reason_hold_time: float
+    stiffness_valid_after: float
+    max_roll: float
+    max_rider_torque: float
+    max_tyre_force: float
+    max_lateral_velocity: float
 
     def speed_grid_ms(self) -> np.ndarray:
         """Design grid in m/s; the end points are always included."""
@@ -81,6 +128,8 @@ class Settings:
     vehicle: VehicleParameters
     estimator: EstimatorTuning
     config_hash: str
+    sensors: dict[str, Any]
+    runtime: dict[str, Any]
 
 
 def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
@@ -111,6 +160,9 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         excitation_slip_velocity=ad["excitation_slip_velocity"],
         excitation_camber_velocity=ad["excitation_camber_velocity"],
         excitation_time_constant=ad["excitation_time_constant"],
+        roll_fusion_time_constant=est["roll_fusion_time_constant"],
+        derivative_filter_hz=est["derivative_filter_hz"],
+        **est["supervisor"],
     )
 
 
@@ -121,7 +173,9 @@ def settings_from_mapping(doc: Any, source: str) -> Settings:
         source=source,
         vehicle=vehicle,
         estimator=_tuning(validated["estimator"], source),
-        config_hash=canonical_hash(validated),
+        config_hash=canonical_hash({k: validated[k] for k in DESIGN_SECTIONS}),
+        sensors=validated["sensors"],
+        runtime=validated["runtime"],
     )
 
 

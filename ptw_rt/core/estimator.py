@@ -1,0 +1,598 @@
+"""The estimator: one Sample in, one Estimates out, every 10 ms, in one jitted call.
+
+Per cycle (`estimator_step`):
+  1. inputs: non-finite values are replaced by the last good ones and flagged; a stale
+     message's values are held;
+  2. conditioning: speed (GPS + accelerometer, latency compensated), steer angle,
+     ground yaw rate and horizontal lateral acceleration de-rolled with the previous
+     cycle's roll, lateral acceleration moved from the IMU to the centre of mass, and
+     the virtual output y_a of seed 001 eq. 15 from filtered derivatives of the rates;
+  3. UIHOSMO (seed 000 case 2): roll and rider torque as unknown inputs;
+  4. roll fusion: the gyro's roll rate integrated, pulled towards the UIHOSMO roll with
+     a time constant (see `docs/estimator.md`: the UIHOSMO roll is unbiased but carries
+     the 10-bit encoder's quantisation, the gyro is smooth but drifts; each covers the
+     other's weakness, and the result no longer depends on the de-rolled yaw rate loop);
+  5. LPV adaptive observer (seed 001): lateral states and tyre stiffness, adapting only
+     when the supervisor allows and the regressor is excited;
+  6. supervisor: mode, reason bits, per-signal validity; guards against NaN/inf and
+     runaway observers by resetting the observer concerned (learned stiffness is kept).
+
+Below the model's validity speed the observers are held in reset: roll is the gyro
+integrated and pulled to the kinematic roll, torque and tyre quantities are flagged invalid.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ptw_rt.core import adaptive as ad
+from ptw_rt.core import uihosmo as uh
+from ptw_rt.core.adaptive import adaptive_step
+from ptw_rt.core.conditioning import (
+    ground_yaw_rate,
+    horizontal_lateral_accel,
+    kinematic_roll,
+    new_speed_state,
+    speed_step,
+    steer_angle,
+)
+from ptw_rt.core.layout import (
+    E_C_ALPHA_FRONT,
+    E_C_ALPHA_REAR,
+    E_C_GAMMA_FRONT,
+    E_C_GAMMA_REAR,
+    E_EXCITATION,
+    E_FY_FRONT,
+    E_FY_FRONT_UIHOSMO,
+    E_FY_REAR,
+    E_FY_REAR_UIHOSMO,
+    E_LAT_ACCEL,
+    E_LAT_VEL,
+    E_LAT_VEL_UIHOSMO,
+    E_MODE,
+    E_REASONS,
+    E_RIDER_TORQUE,
+    E_ROLL,
+    E_ROLL_ADAPTIVE,
+    E_ROLL_RATE,
+    E_ROLL_UIHOSMO,
+    E_SPEED,
+    E_STEER,
+    E_STEER_RATE,
+    E_VALID,
+    E_Y_A,
+    E_YAW_RATE,
+    ESTIMATES_SIZE,
+    MODE_CONVERGING,
+    MODE_DEGRADED,
+    MODE_FAULT,
+    MODE_INIT,
+    MODE_VALID,
+    MSG_GPS,
+    MSG_IMU_ACCEL,
+    MSG_IMU_RATES,
+    MSG_STEER,
+    REASON_DIVERGING,
+    REASON_GPS_LOST,
+    REASON_OUT_OF_RANGE,
+    REASON_SPEED_LOW,
+    REASON_STALE,
+    S_ACCEL_X,
+    S_ACCEL_Y,
+    S_ACCEL_Z,
+    S_FRESH,
+    S_GPS_FIX,
+    S_GPS_SPEED,
+    S_INPUT_REASONS,
+    S_PITCH_RATE_BODY,
+    S_ROLL_RATE_BODY,
+    S_STALE,
+    S_STEER_COUNT,
+    S_YAW_RATE_BODY,
+    V_CAMBER,
+    V_CORNERING,
+    V_FY_FRONT,
+    V_FY_REAR,
+    V_LAT_VEL,
+    V_RIDER_TORQUE,
+    V_ROLL,
+    V_ROLL_RATE,
+    V_STEER,
+    V_STEER_RATE,
+)
+
+# ---- parameter vector (float64), filled once from config + design by `Estimator` ----
+P_DT = 0
+P_DIFF_L = 1
+P_G = 2
+P_MIN_SPEED = 3
+P_STEER_ZERO = 4
+P_STEER_CPR = 5
+P_SPEED_GAIN = 6
+P_SPEED_BIAS_GAIN = 7
+P_LATENCY_SAMPLES = 8
+P_FUSION_RATE = 9  # 1/s
+P_DERIV_OMEGA = 10  # rad/s of the critically damped derivative filter
+P_CONVERGE_TIME = 11
+P_GPS_HOLD = 12
+P_REASON_HOLD = 13
+P_STIFF_VALID_AFTER = 14
+P_MAX_ROLL = 15
+P_MAX_TORQUE = 16
+P_MAX_FORCE = 17
+P_MAX_LAT_VEL = 18
+P_A_Y_R_DOT = 19  # lever arm: a_y(CoM) = a_y(IMU) + k1 r_dot + k2 phi_ddot
+P_A_Y_PHI_DDOT = 20
+P_YA_R_DOT = 21  # y_a = c1 r_dot + c2 phi_ddot + u (c3 phi_dot + c4 delta_dot)
+P_YA_PHI_DDOT = 22
+P_YA_PHI_DOT = 23
+P_YA_DELTA_DOT = 24
+P_DIFF_SUBSTEPS = 25
+P_PE_FORGETTING = 26
+PARAM_SIZE = 27
+
+# ---- supervisor / glue state (float64) ----
+G_INIT = 0  # 1 once the first usable sample has been seen
+G_ROLL = 1  # fused roll [rad]
+G_RUN_TIME = 2  # s the observers have been running since their last (re)start
+G_GPS_AGE = 3  # s since the last usable GPS fix
+G_OBSERVERS_ON = 4
+G_LAST = 5  # 8 last good raw inputs: p, q, r, ax, ay, az, steer count, gps speed
+G_DF = 13  # derivative filters: [r_f, r_dot_f, p_f, p_dot_f]
+G_THETA_GOOD = 17  # last finite stiffness deviations (4)
+G_EXCITED_TIME = 21  # s of adaptation per parameter (4)
+G_REASON_UNTIL = 25  # per reason bit (16): time until which it stays raised
+G_TIME = 41  # s since start (sum of dt)
+G_RESTORED = 42  # 1 if the stiffness came from a saved state (valid from the start)
+GLUE_SIZE = 43
+N_RAW = 8
+
+SCRATCH_SIZE = 64
+
+
+@njit(cache=True)
+def _finite_or(value: float, fallback: float) -> float:
+    return value if math.isfinite(value) else fallback
+
+
+@njit(cache=True)
+def _raise(glue: np.ndarray, bits: int, hold: float) -> None:
+    t = glue[G_TIME] + hold
+    for k in range(16):
+        if bits >> k & 1:
+            if glue[G_REASON_UNTIL + k] < t:
+                glue[G_REASON_UNTIL + k] = t
+
+
+@njit(cache=True)
+def _derivative_filter(z: np.ndarray, k: int, y: float, omega: float, dt: float) -> float:
+    """Critically damped 2nd-order tracking filter, exact ZOH; returns the filtered derivative of y."""
+    a = omega * dt
+    e = math.exp(-a)
+    x0 = z[k] - y
+    x1 = z[k + 1]
+    z[k] = y + e * ((1.0 + a) * x0 + dt * x1)
+    z[k + 1] = e * (-omega * omega * dt * x0 + (1.0 - a) * x1)
+    return z[k + 1]
+
+
+@njit(cache=True)
+def _all_finite(v: np.ndarray, n: int) -> bool:
+    for i in range(n):
+        if not math.isfinite(v[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def estimator_step(
+    sample: np.ndarray,
+    est: np.ndarray,
+    glue: np.ndarray,
+    spd: np.ndarray,
+    uh_state: np.ndarray,
+    ad_state: np.ndarray,
+    scratch: np.ndarray,
+    chi: np.ndarray,
+    prm: np.ndarray,
+    grid: np.ndarray,
+    uh_Phi: np.ndarray,
+    uh_Gamma: np.ndarray,
+    uh_T_inv: np.ndarray,
+    uh_Abar: np.ndarray,
+    uh_Dbar_inv: np.ndarray,
+    uh_Phi22: np.ndarray,
+    uh_Gamma21: np.ndarray,
+    uh_Ramp_y: np.ndarray,
+    uh_Ramp21: np.ndarray,
+    lam_steer: np.ndarray,
+    lam_yaw: np.ndarray,
+    ad_Phi: np.ndarray,
+    ad_B_tau: np.ndarray,
+    ad_B_theta: np.ndarray,
+    ad_B_y: np.ndarray,
+    ad_C: np.ndarray,
+    ad_T: np.ndarray,
+    ad_gamma: np.ndarray,
+    theta_nominal: np.ndarray,
+    theta_bound: np.ndarray,
+    regressor_constants: np.ndarray,
+    pe_threshold: np.ndarray,
+) -> None:
+    dt = prm[P_DT]
+    glue[G_TIME] += dt
+    fresh = int(sample[S_FRESH])
+    stale = int(sample[S_STALE])
+    reasons_now = int(sample[S_INPUT_REASONS])
+
+    # ---- 1. inputs: hold the last good value of anything non-finite or stale ----
+    raw = scratch[0:N_RAW]
+    src = (
+        S_ROLL_RATE_BODY,
+        S_PITCH_RATE_BODY,
+        S_YAW_RATE_BODY,
+        S_ACCEL_X,
+        S_ACCEL_Y,
+        S_ACCEL_Z,
+        S_STEER_COUNT,
+        S_GPS_SPEED,
+    )
+    for k in range(N_RAW):
+        v = sample[src[k]]
+        if math.isfinite(v):
+            raw[k] = v
+        else:
+            raw[k] = glue[G_LAST + k]
+            reasons_now |= REASON_OUT_OF_RANGE
+    if stale & MSG_IMU_RATES:
+        for k in range(3):
+            raw[k] = glue[G_LAST + k]
+    if stale & MSG_IMU_ACCEL:
+        for k in range(3, 6):
+            raw[k] = glue[G_LAST + k]
+    if stale & MSG_STEER:
+        raw[6] = glue[G_LAST + 6]
+    for k in range(N_RAW):
+        glue[G_LAST + k] = raw[k]
+    if stale != 0:
+        reasons_now |= REASON_STALE
+    core_ok = (stale & (MSG_IMU_RATES | MSG_STEER)) == 0
+    accel_ok = (stale & MSG_IMU_ACCEL) == 0
+
+    gps_fix = sample[S_GPS_FIX]
+    gps_new = (fresh & MSG_GPS) != 0 and (stale & MSG_GPS) == 0
+    gps_ok = gps_new and gps_fix >= 2.0 and math.isfinite(sample[S_GPS_SPEED])
+    if gps_ok:
+        glue[G_GPS_AGE] = 0.0
+    else:
+        glue[G_GPS_AGE] += dt
+    gps_lost = glue[G_GPS_AGE] > prm[P_GPS_HOLD]
+    if gps_lost:
+        reasons_now |= REASON_GPS_LOST
+
+    # ---- 2. conditioning ----
+    accel_x = raw[3] if accel_ok else 0.0
+    u = speed_step(
+        spd,
+        accel_x,
+        raw[7],
+        gps_ok,
+        gps_ok,
+        dt,
+        prm[P_SPEED_GAIN],
+        prm[P_SPEED_BIAS_GAIN],
+        int(prm[P_LATENCY_SAMPLES]),
+    )
+    speed_known = spd[3] != 0.0  # the filter has had its first fix
+    roll_prev = glue[G_ROLL]
+    p_rate = raw[0]
+    r_ground = ground_yaw_rate(raw[1], raw[2], roll_prev)
+    delta = steer_angle(raw[6], prm[P_STEER_ZERO], prm[P_STEER_CPR])
+    a_y_imu = horizontal_lateral_accel(raw[4], raw[5], roll_prev)
+    if glue[G_INIT] == 0.0:
+        glue[G_DF + 0] = r_ground
+        glue[G_DF + 2] = p_rate
+    r_dot = _derivative_filter(glue, G_DF + 0, r_ground, prm[P_DERIV_OMEGA], dt)
+    p_dot = _derivative_filter(glue, G_DF + 2, p_rate, prm[P_DERIV_OMEGA], dt)
+    a_y = a_y_imu + prm[P_A_Y_R_DOT] * r_dot + prm[P_A_Y_PHI_DDOT] * p_dot
+    glue[G_INIT] = 1.0
+
+    speed_low = (not speed_known) or u < prm[P_MIN_SPEED]
+    if speed_low:
+        reasons_now |= REASON_SPEED_LOW
+
+    # ---- 3.-5. observers, only where the model holds ----
+    run_observers = core_ok and not speed_low
+    if not run_observers:
+        uh_state[uh.INIT] = 0.0
+        ad_state[ad.INIT] = 0.0
+        glue[G_OBSERVERS_ON] = 0.0
+        glue[G_RUN_TIME] = 0.0
+    uh_out = scratch[8:17]
+    uh_scratch = scratch[24:48]
+    ad_scratch = scratch[48:64]
+    roll_uio = 0.0
+    tau = 0.0
+    if run_observers:
+        glue[G_OBSERVERS_ON] = 1.0
+        glue[G_RUN_TIME] += dt
+        uh.uihosmo_step(
+            uh_state,
+            uh_out,
+            uh_scratch,
+            delta,
+            r_ground,
+            u,
+            dt,
+            prm[P_DIFF_L],
+            grid,
+            uh_Phi,
+            uh_Gamma,
+            uh_T_inv,
+            uh_Abar,
+            uh_Dbar_inv,
+            uh_Phi22,
+            uh_Gamma21,
+            uh_Ramp_y,
+            uh_Ramp21,
+            lam_steer,
+            lam_yaw,
+            int(prm[P_DIFF_SUBSTEPS]),
+        )
+        roll_uio = uh_out[uh.OUT_PHI]
+        tau = uh_out[uh.OUT_TAU]
+        if (
+            not _all_finite(uh_out, uh.OUT_SIZE)
+            or not _all_finite(uh_state, uh.STATE_SIZE)
+            or abs(roll_uio) > prm[P_MAX_ROLL]
+            or abs(tau) > prm[P_MAX_TORQUE]
+        ):
+            uh_state[uh.INIT] = 0.0
+            ad_state[ad.INIT] = 0.0
+            glue[G_RUN_TIME] = 0.0
+            _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
+            roll_uio = glue[G_ROLL]
+            tau = 0.0
+            for k in range(uh.OUT_SIZE):
+                uh_out[k] = 0.0
+            uh_out[uh.X_DELTA] = delta
+            uh_out[uh.X_R] = r_ground
+
+    # 4. roll: gyro integrated, pulled towards the model's roll (kinematic below validity)
+    roll_ref = roll_uio if run_observers else kinematic_roll(u, r_ground, prm[P_G])
+    roll = glue[G_ROLL] + dt * p_rate
+    pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)
+    roll += pull * (roll_ref - roll)
+    if not math.isfinite(roll) or abs(roll) > prm[P_MAX_ROLL]:
+        roll = _finite_or(roll_ref, 0.0)
+        if abs(roll) > prm[P_MAX_ROLL]:
+            roll = 0.0
+        _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
+    glue[G_ROLL] = roll
+
+    # 5. adaptive observer: y = [delta, r, phi_dot, delta_dot, a_y, y_a]
+    theta = ad_state[ad.TH0 : ad.TH1]
+    adapting_bits = 0
+    y_a = 0.0
+    if run_observers:
+        delta_dot = uh_out[uh.X_DELTA_DOT]
+        y_a = (
+            prm[P_YA_R_DOT] * r_dot
+            + prm[P_YA_PHI_DDOT] * p_dot
+            + u * (prm[P_YA_PHI_DOT] * p_rate + prm[P_YA_DELTA_DOT] * delta_dot)
+        )
+        y = scratch[17:23]
+        y[0] = delta
+        y[1] = r_ground
+        y[2] = p_rate
+        y[3] = delta_dot
+        y[4] = a_y
+        y[5] = y_a
+        first = ad_state[ad.INIT] == 0.0
+        allow = accel_ok and not gps_lost and glue[G_RUN_TIME] > prm[P_CONVERGE_TIME] and reasons_now == 0
+        adaptive_step(
+            ad_state,
+            chi,
+            ad_scratch,
+            y,
+            tau,
+            u,
+            dt,
+            allow,
+            grid,
+            ad_Phi,
+            ad_B_tau,
+            ad_B_theta,
+            ad_B_y,
+            ad_C,
+            ad_T,
+            ad_gamma,
+            theta_nominal,
+            theta_bound,
+            regressor_constants,
+            pe_threshold,
+            prm[P_PE_FORGETTING],
+        )
+        if first:
+            ad_state[ad.X0 + ad.PHI] = roll
+        if allow:
+            for k in range(4):
+                if ad_state[ad.PE0 + k] > pe_threshold[k] * pe_threshold[k]:
+                    adapting_bits |= 1 << k
+                    glue[G_EXCITED_TIME + k] += dt
+        x_ad = ad_state[ad.X0 : ad.X1]
+        if (
+            not _all_finite(ad_state, ad.STATE_SIZE)
+            or abs(x_ad[ad.FYF]) > prm[P_MAX_FORCE]
+            or abs(x_ad[ad.FYR]) > prm[P_MAX_FORCE]
+            or abs(x_ad[ad.VY]) > prm[P_MAX_LAT_VEL]
+        ):
+            # reset the states, keep what was learned
+            ad_state[ad.INIT] = 0.0
+            for k in range(4):
+                theta[k] = glue[G_THETA_GOOD + k]
+            for k in range(4):
+                ad_state[ad.PE0 + k] = 0.0
+            for k in range(8):
+                x_ad[k] = 0.0
+            _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
+    for k in range(4):
+        if math.isfinite(theta[k]):
+            glue[G_THETA_GOOD + k] = theta[k]
+        else:
+            theta[k] = glue[G_THETA_GOOD + k]
+
+    # ---- 6. supervisor ----
+    _raise(glue, reasons_now, prm[P_REASON_HOLD])
+    # conditions that are states, not events, end as soon as they end
+    reasons = reasons_now & (REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE)
+    for k in range(16):
+        if glue[G_REASON_UNTIL + k] > glue[G_TIME] and not (1 << k) & (
+            REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE
+        ):
+            reasons |= 1 << k
+
+    if not speed_known and core_ok:
+        mode = MODE_INIT
+    elif not core_ok:
+        mode = MODE_FAULT
+    elif reasons & REASON_DIVERGING and not run_observers:
+        mode = MODE_FAULT
+    elif reasons != 0:
+        mode = MODE_DEGRADED
+    elif glue[G_RUN_TIME] < prm[P_CONVERGE_TIME]:
+        mode = MODE_CONVERGING
+    else:
+        mode = MODE_VALID
+
+    valid = 0
+    if core_ok:
+        valid |= V_ROLL_RATE | V_STEER
+    observers_settled = run_observers and glue[G_RUN_TIME] >= prm[P_CONVERGE_TIME]
+    if observers_settled:
+        valid |= V_ROLL | V_RIDER_TORQUE | V_STEER_RATE
+        if accel_ok:
+            valid |= V_LAT_VEL | V_FY_FRONT | V_FY_REAR
+    restored = glue[G_RESTORED] != 0.0
+    settle = prm[P_STIFF_VALID_AFTER]
+    if restored or (glue[G_EXCITED_TIME + 0] >= settle and glue[G_EXCITED_TIME + 2] >= settle):
+        valid |= V_CORNERING
+    if restored or (glue[G_EXCITED_TIME + 1] >= settle and glue[G_EXCITED_TIME + 3] >= settle):
+        valid |= V_CAMBER
+
+    # ---- outputs ----
+    x_ad = ad_state[ad.X0 : ad.X1]
+    est[E_ROLL] = roll
+    est[E_ROLL_RATE] = p_rate
+    est[E_RIDER_TORQUE] = tau
+    est[E_STEER] = uh_out[uh.X_DELTA] if run_observers else delta
+    est[E_STEER_RATE] = uh_out[uh.X_DELTA_DOT] if run_observers else 0.0
+    est[E_LAT_VEL] = x_ad[ad.VY] if run_observers else 0.0
+    est[E_FY_FRONT] = x_ad[ad.FYF] if run_observers else 0.0
+    est[E_FY_REAR] = x_ad[ad.FYR] if run_observers else 0.0
+    est[E_C_ALPHA_FRONT] = theta_nominal[0] + theta[0]
+    est[E_C_GAMMA_FRONT] = theta_nominal[1] + theta[1]
+    est[E_C_ALPHA_REAR] = theta_nominal[2] + theta[2]
+    est[E_C_GAMMA_REAR] = theta_nominal[3] + theta[3]
+    est[E_SPEED] = u
+    est[E_YAW_RATE] = r_ground
+    est[E_MODE] = mode
+    est[E_REASONS] = reasons
+    est[E_VALID] = valid
+    est[E_ROLL_UIHOSMO] = roll_uio
+    est[E_LAT_ACCEL] = a_y
+    est[E_EXCITATION] = adapting_bits
+    est[E_ROLL_ADAPTIVE] = x_ad[ad.PHI] if run_observers else 0.0
+    est[E_LAT_VEL_UIHOSMO] = uh_out[uh.X_VY] if run_observers else 0.0
+    est[E_FY_FRONT_UIHOSMO] = uh_out[uh.X_FYF] if run_observers else 0.0
+    est[E_FY_REAR_UIHOSMO] = uh_out[uh.X_FYR] if run_observers else 0.0
+    est[E_Y_A] = y_a
+    # last line of defence: nothing non-finite leaves the step
+    for k in range(ESTIMATES_SIZE):
+        if not math.isfinite(est[k]):
+            est[k] = 0.0
+
+
+class Estimator:
+    """Owns the preallocated state of one estimator and the bound arguments of its jitted step."""
+
+    def __init__(self, settings, design) -> None:
+        from ptw_rt.core.params import build_params  # the one place config becomes numbers
+
+        self.settings = settings
+        self.design = design
+        self.sample_time = float(design.sample_time)
+        self.prm = build_params(settings, design)
+        self.glue = np.zeros(GLUE_SIZE)
+        self.spd = new_speed_state(int(self.prm[P_LATENCY_SAMPLES]))
+        self.uh_state = uh.new_state()
+        self.ad_state = ad.new_state()
+        self.scratch = np.zeros(SCRATCH_SIZE)
+        self.chi = np.zeros((2, 4))
+        c = np.ascontiguousarray
+        d = design
+        self._tables = (
+            c(d.grid, dtype=np.float64),
+            c(d.uh_Phi),
+            c(d.uh_Gamma),
+            c(d.uh_T_inv),
+            c(d.uh_Abar),
+            c(d.uh_Dbar_inv),
+            c(d.uh_Phi22),
+            c(d.uh_Gamma21),
+            c(d.uh_Ramp_y),
+            c(d.uh_Ramp21),
+            uh.LAMBDA_STEER.copy(),
+            uh.LAMBDA_YAW.copy(),
+            c(d.ad_Phi),
+            c(d.ad_B_tau),
+            c(d.ad_B_theta),
+            c(d.ad_B_y),
+            c(d.ad_C),
+            c(d.ad_T),
+            c(d.ad_gamma, dtype=np.float64),
+            c(d.ad_theta_nominal, dtype=np.float64),
+            c(d.ad_theta_bound, dtype=np.float64),
+            c(d.regressor_constants, dtype=np.float64),
+            c(d.ad_pe_threshold, dtype=np.float64),
+        )
+        self._args = (
+            self.glue,
+            self.spd,
+            self.uh_state,
+            self.ad_state,
+            self.scratch,
+            self.chi,
+            self.prm,
+            *self._tables,
+        )
+
+    def reset(self) -> None:
+        """Forget everything but the learned stiffness."""
+        theta = self.ad_state[ad.TH0 : ad.TH1].copy()
+        restored = self.glue[G_RESTORED]
+        for a in (self.glue, self.spd, self.uh_state, self.ad_state, self.scratch):
+            a[:] = 0.0
+        self.ad_state[ad.TH0 : ad.TH1] = theta
+        self.glue[G_THETA_GOOD : G_THETA_GOOD + 4] = theta
+        self.glue[G_RESTORED] = restored
+
+    def step(self, sample: np.ndarray, estimates: np.ndarray) -> None:
+        estimator_step(sample, estimates, *self._args)
+
+    def learned_stiffness(self) -> np.ndarray:
+        """[C_af, C_gf, C_ar, C_gr] in N/rad."""
+        return self.design.ad_theta_nominal + self.ad_state[ad.TH0 : ad.TH1]
+
+    def restore_stiffness(self, values) -> None:
+        """Start from stiffness learned earlier (clipped to the design's bounds); marks it valid."""
+        values = np.asarray(values, dtype=float)
+        if values.shape != (4,) or not np.all(np.isfinite(values)):
+            raise ValueError("expected four finite stiffness values")
+        dev = np.clip(values - self.design.ad_theta_nominal, -self.design.ad_theta_bound, self.design.ad_theta_bound)
+        self.ad_state[ad.TH0 : ad.TH1] = dev
+        self.glue[G_THETA_GOOD : G_THETA_GOOD + 4] = dev
+        self.glue[G_RESTORED] = 1.0

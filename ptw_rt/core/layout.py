@@ -1,0 +1,150 @@
+"""The two fixed-layout records that cross between I/O and the math: Sample in, Estimates out.
+
+Both are flat float64 arrays with named indices, so the jitted step takes them
+without Python objects. The I/O edge (daemon, replay, evaluation) fills one
+Sample per 10 ms cycle from the newest frame of each input and reads one
+Estimates back. Bit fields are stored as exact small integers in float64.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# ---- Sample: raw sensor values of one cycle, in the CAN contract's units ----
+S_TIME = 0  # s, the cycle's time stamp (monotonic clock or log time)
+S_ROLL_RATE_BODY = 1  # rad/s, IMU body x
+S_PITCH_RATE_BODY = 2  # rad/s, IMU body y
+S_YAW_RATE_BODY = 3  # rad/s, IMU body z
+S_ACCEL_X = 4  # m/s^2, specific force, body axes
+S_ACCEL_Y = 5
+S_ACCEL_Z = 6
+S_STEER_COUNT = 7  # raw encoder count 0..1023
+S_GPS_SPEED = 8  # m/s over ground
+S_GPS_FIX = 9  # 0 none, 1 dead reckoning, 2 2D, 3 3D
+S_FRESH = 10  # MSG_* bits: a frame of that message arrived since the previous cycle
+S_STALE = 11  # MSG_* bits: no valid frame of that message within its timeout
+S_INPUT_REASONS = 12  # REASON_* bits raised by the I/O edge (decode errors, range, counters, overrun, send)
+SAMPLE_SIZE = 13
+
+# input messages, bit order of EST_Status.SensorTimeouts
+MSG_IMU_RATES = 1
+MSG_IMU_ACCEL = 2
+MSG_STEER = 4
+MSG_GPS = 8
+INPUT_MESSAGE_BITS = {
+    "IMU_Rates": MSG_IMU_RATES,
+    "IMU_Accel": MSG_IMU_ACCEL,
+    "Steer_Encoder": MSG_STEER,
+    "GPS_Velocity": MSG_GPS,
+}
+
+# EST_Status.ReasonBits
+REASON_SPEED_LOW = 1 << 0
+REASON_GPS_LOST = 1 << 1
+REASON_STALE = 1 << 2
+REASON_DIVERGING = 1 << 3
+REASON_OUT_OF_RANGE = 1 << 4
+REASON_DECODE_ERRORS = 1 << 5
+REASON_COUNTER_JUMPS = 1 << 6
+REASON_OVERRUN = 1 << 7
+REASON_SEND_FAILURE = 1 << 8
+REASON_NAMES = (
+    "speed_low",
+    "gps_lost",
+    "sensor_stale",
+    "observer_reset",
+    "out_of_range",
+    "decode_errors",
+    "counter_jumps",
+    "overrun",
+    "send_failure",
+)
+
+# EST_Status.Mode
+MODE_INIT = 0
+MODE_CONVERGING = 1
+MODE_VALID = 2
+MODE_DEGRADED = 3
+MODE_FAULT = 4
+MODE_NAMES = ("INIT", "CONVERGING", "VALID", "DEGRADED", "FAULT")
+
+# ---- Estimates: what the estimator publishes (SI units, SAE signs) plus diagnostics ----
+E_ROLL = 0  # rad
+E_ROLL_RATE = 1  # rad/s
+E_RIDER_TORQUE = 2  # N m
+E_STEER = 3  # rad
+E_STEER_RATE = 4  # rad/s
+E_LAT_VEL = 5  # m/s
+E_FY_FRONT = 6  # N
+E_FY_REAR = 7  # N
+E_C_ALPHA_FRONT = 8  # N/rad
+E_C_GAMMA_FRONT = 9
+E_C_ALPHA_REAR = 10
+E_C_GAMMA_REAR = 11
+E_SPEED = 12  # m/s, conditioned forward speed
+E_YAW_RATE = 13  # rad/s, ground frame
+E_MODE = 14  # MODE_*
+E_REASONS = 15  # REASON_* bits
+E_VALID = 16  # V_* bits
+E_ROLL_UIHOSMO = 17  # rad, the UIHOSMO's unknown-input roll before fusion (diagnostic)
+E_LAT_ACCEL = 18  # m/s^2, conditioned lateral acceleration at the centre of mass (diagnostic)
+E_EXCITATION = 19  # bits 0..3: stiffness i currently excited (adapting)
+E_ROLL_ADAPTIVE = 20  # rad, the adaptive observer's roll state (diagnostic)
+E_LAT_VEL_UIHOSMO = 21  # m/s, the UIHOSMO's states with nominal stiffness (diagnostic)
+E_FY_FRONT_UIHOSMO = 22  # N
+E_FY_REAR_UIHOSMO = 23  # N
+E_Y_A = 24  # virtual output y_a of seed 001 eq. 15 as measured (diagnostic)
+ESTIMATES_SIZE = 25
+
+# per-signal validity bits (E_VALID), one per published signal group
+V_ROLL = 1 << 0
+V_ROLL_RATE = 1 << 1
+V_RIDER_TORQUE = 1 << 2
+V_STEER = 1 << 3
+V_STEER_RATE = 1 << 4
+V_LAT_VEL = 1 << 5
+V_FY_FRONT = 1 << 6
+V_FY_REAR = 1 << 7
+V_CORNERING = 1 << 8
+V_CAMBER = 1 << 9
+
+ESTIMATE_NAMES = (
+    "roll",
+    "roll_rate",
+    "rider_torque",
+    "steer",
+    "steer_rate",
+    "lat_vel",
+    "fy_front",
+    "fy_rear",
+    "c_alpha_front",
+    "c_gamma_front",
+    "c_alpha_rear",
+    "c_gamma_rear",
+    "speed",
+    "yaw_rate",
+    "mode",
+    "reasons",
+    "valid",
+    "roll_uihosmo",
+    "lat_accel",
+    "excitation",
+    "roll_adaptive",
+    "lat_vel_uihosmo",
+    "fy_front_uihosmo",
+    "fy_rear_uihosmo",
+    "y_a",
+)
+assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
+
+
+def new_sample() -> np.ndarray:
+    return np.zeros(SAMPLE_SIZE)
+
+
+def new_estimates() -> np.ndarray:
+    return np.zeros(ESTIMATES_SIZE)
+
+
+def reason_names(bits: int) -> list[str]:
+    return [name for k, name in enumerate(REASON_NAMES) if int(bits) >> k & 1]

@@ -1,0 +1,180 @@
+"""Persisted tyre stiffness: round trip, atomic replacement, and rejection of every kind of bad file."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from ptw_rt.io import state_file
+from ptw_rt.io.state_file import STIFFNESS_KEYS, LoadedState, load_state, save_state
+
+HASH = "a1b2c3d4e5f6"
+STIFF = (21000.0, 1200.5, 27000.0, 1500.25)
+
+
+def _leftovers(directory):
+    return sorted(p.name for p in directory.iterdir() if p.name.endswith(".tmp"))
+
+
+def test_round_trip(tmp_path):
+    path = tmp_path / "state.json"
+    assert save_state(path, STIFF, HASH, extra={"adapt_cycles": 1234}) == path
+    state, reason = load_state(path, HASH)
+    assert reason == "ok"
+    assert isinstance(state, LoadedState)
+    assert state.stiffness == STIFF
+    assert state.config_hash == HASH
+    assert state.extra == {"adapt_cycles": 1234}
+    assert state.saved_at.endswith("+00:00") and "T" in state.saved_at
+    doc = json.loads(path.read_text())
+    assert doc["format"] == "ptw-rt-state" and doc["version"] == 1
+    assert doc["stiffness"] == dict(zip(STIFFNESS_KEYS, STIFF, strict=True))
+    assert _leftovers(tmp_path) == []
+
+
+def test_numpy_values_and_overwrite(tmp_path):
+    np = pytest.importorskip("numpy")
+    path = tmp_path / "state.json"
+    save_state(path, STIFF, HASH)
+    save_state(path, np.array([1.0, 2.0, 3.0, 4.0]), HASH)
+    state, _ = load_state(path, HASH)
+    assert state is not None and state.stiffness == (1.0, 2.0, 3.0, 4.0)
+    assert state.extra == {}
+
+
+def test_missing_directory_is_created(tmp_path):
+    path = tmp_path / "var" / "lib" / "ptw-rt" / "state.json"
+    save_state(path, STIFF, HASH)
+    assert path.is_file()
+    assert load_state(path, HASH)[0] is not None
+
+
+def test_crash_before_replace_keeps_old_file(tmp_path, monkeypatch):
+    path = tmp_path / "state.json"
+    save_state(path, STIFF, HASH)
+    before = path.read_bytes()
+
+    def boom(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(state_file.os, "replace", boom)
+    for _ in range(3):
+        with pytest.raises(OSError):
+            save_state(path, (1.0, 1.0, 1.0, 1.0), HASH)
+    assert path.read_bytes() == before
+    assert _leftovers(tmp_path) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json"]
+    state, _ = load_state(path, HASH)
+    assert state is not None and state.stiffness == STIFF
+
+
+def test_crash_during_write_keeps_old_file(tmp_path, monkeypatch):
+    path = tmp_path / "state.json"
+    save_state(path, STIFF, HASH)
+    before = path.read_bytes()
+
+    def boom(fd):
+        raise OSError(5, "I/O error")
+
+    monkeypatch.setattr(state_file.os, "fsync", boom)
+    with pytest.raises(OSError):
+        save_state(path, (1.0, 1.0, 1.0, 1.0), HASH)
+    assert path.read_bytes() == before
+    assert _leftovers(tmp_path) == []
+
+
+def test_invalid_values_are_not_written(tmp_path):
+    path = tmp_path / "state.json"
+    for bad in [(float("nan"), 1, 1, 1), (1, 1, -5, 1), (1, 1, 1), (1, 0, 1, 1), (1, 1, 1, float("inf"))]:
+        with pytest.raises(ValueError):
+            save_state(path, bad, HASH)
+    assert not path.exists()
+    assert _leftovers(tmp_path) == []
+
+
+def test_missing_file(tmp_path):
+    state, reason = load_state(tmp_path / "nope.json", HASH)
+    assert state is None and "no state file" in reason
+
+
+def test_unreadable_path(tmp_path):
+    state, reason = load_state(tmp_path, HASH)  # a directory
+    assert state is None and "unreadable" in reason
+
+
+@pytest.mark.parametrize(
+    "content, expected",
+    [
+        (b"", "not valid JSON"),
+        (b"\x00\xff\xfe garbage", "not valid JSON"),
+        (b"[1, 2, 3]", "not a JSON object"),
+        (b'{"format": "other", "version": 1}', "wrong format"),
+        (b'{"format": "ptw-rt-state", "version": 2, "config_hash": "a1b2c3d4e5f6"}', "unsupported version"),
+        (b'{"format": "ptw-rt-state", "version": true, "config_hash": "a1b2c3d4e5f6"}', "unsupported version"),
+        (b'{"format": "ptw-rt-state", "version": 1}', "no config_hash"),
+        (b'{"format": "ptw-rt-state", "version": 1, "config_hash": "a1b2c3d4e5f6"}', "no stiffness"),
+    ],
+)
+def test_corrupt_content_rejected(tmp_path, content, expected):
+    path = tmp_path / "state.json"
+    path.write_bytes(content)
+    state, reason = load_state(path, HASH)
+    assert state is None
+    assert expected in reason
+
+
+def test_truncated_json_rejected(tmp_path):
+    path = tmp_path / "state.json"
+    save_state(path, STIFF, HASH)
+    full = path.read_bytes()
+    for n in (1, len(full) // 3, len(full) // 2, len(full) - 3):
+        path.write_bytes(full[:n])
+        state, reason = load_state(path, HASH)
+        assert state is None, n
+        assert "not valid JSON" in reason
+
+
+def test_mismatched_hash_rejected(tmp_path):
+    path = tmp_path / "state.json"
+    save_state(path, STIFF, HASH)
+    state, reason = load_state(path, "ffffffffffff")
+    assert state is None
+    assert "another configuration" in reason
+
+
+def _write_doc(path, stiffness):
+    doc = {"format": "ptw-rt-state", "version": 1, "config_hash": HASH, "saved_at": "x", "stiffness": stiffness}
+    path.write_text(json.dumps(doc))  # json.dumps writes NaN / Infinity tokens, json.loads reads them back
+
+
+@pytest.mark.parametrize(
+    "bad_value",
+    [float("nan"), float("inf"), -float("inf"), 0.0, -1.0, "21000", None, True, [1.0], 10**400],
+)
+def test_bad_values_rejected(tmp_path, bad_value):
+    path = tmp_path / "state.json"
+    stiffness = dict(zip(STIFFNESS_KEYS, STIFF, strict=True))
+    stiffness["rear_camber"] = bad_value
+    _write_doc(path, stiffness)
+    state, reason = load_state(path, HASH)
+    assert state is None
+    assert "rear_camber" in reason and "non-finite or non-positive" in reason
+
+
+def test_missing_value_rejected(tmp_path):
+    path = tmp_path / "state.json"
+    stiffness = dict(zip(STIFFNESS_KEYS, STIFF, strict=True))
+    del stiffness["front_camber"]
+    _write_doc(path, stiffness)
+    state, reason = load_state(path, HASH)
+    assert state is None and "front_camber" in reason
+
+
+def test_no_temp_files_accumulate(tmp_path):
+    path = tmp_path / "state.json"
+    for k in range(20):
+        save_state(path, (1.0 + k, 2.0, 3.0, 4.0), HASH)
+    assert sorted(os.listdir(tmp_path)) == ["state.json"]
+    assert load_state(path, HASH)[0].stiffness[0] == 20.0
