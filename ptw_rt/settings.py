@@ -47,6 +47,8 @@ ESTIMATOR_SCHEMA = Section(
             }
         ),
         "roll_fusion_time_constant": Number("s", gt=0),
+        "roll_reference_uihosmo_weight": Number("", ge=0, le=1),
+        "torque_filter_time_constant": Number("s", gt=0),
         "derivative_filter_hz": Number("Hz", gt=0, lt=50),
         "supervisor": Section(
             {
@@ -106,6 +108,8 @@ class EstimatorTuning:
     excitation_camber_velocity: float
     excitation_time_constant: float
     roll_fusion_time_constant: float
+    roll_reference_uihosmo_weight: float
+    torque_filter_time_constant: float
     derivative_filter_hz: float
     converge_time: float
     gps_hold_time: float
@@ -161,6 +165,8 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         excitation_camber_velocity=ad["excitation_camber_velocity"],
         excitation_time_constant=ad["excitation_time_constant"],
         roll_fusion_time_constant=est["roll_fusion_time_constant"],
+        roll_reference_uihosmo_weight=est["roll_reference_uihosmo_weight"],
+        torque_filter_time_constant=est["torque_filter_time_constant"],
         derivative_filter_hz=est["derivative_filter_hz"],
         **est["supervisor"],
     )

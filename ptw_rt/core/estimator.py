@@ -46,12 +46,12 @@ from ptw_rt.core.layout import (
     E_C_GAMMA_REAR,
     E_EXCITATION,
     E_FY_FRONT,
-    E_FY_FRONT_UIHOSMO,
+    E_FY_FRONT_ADAPTIVE,
     E_FY_REAR,
-    E_FY_REAR_UIHOSMO,
+    E_FY_REAR_ADAPTIVE,
     E_LAT_ACCEL,
     E_LAT_VEL,
-    E_LAT_VEL_UIHOSMO,
+    E_LAT_VEL_ADAPTIVE,
     E_MODE,
     E_REASONS,
     E_RIDER_TORQUE,
@@ -132,7 +132,9 @@ P_YA_PHI_DOT = 23
 P_YA_DELTA_DOT = 24
 P_DIFF_SUBSTEPS = 25
 P_PE_FORGETTING = 26
-PARAM_SIZE = 27
+P_ROLL_UIO_WEIGHT = 27  # share of the UIHOSMO roll in the fusion reference (rest: kinematic roll)
+P_TORQUE_FILTER_RATE = 28  # 1/s, low-pass of the reconstructed torque fed to the adaptive observer
+PARAM_SIZE = 29
 
 # ---- supervisor / glue state (float64) ----
 G_INIT = 0  # 1 once the first usable sample has been seen
@@ -147,7 +149,8 @@ G_EXCITED_TIME = 21  # s of adaptation per parameter (4)
 G_REASON_UNTIL = 25  # per reason bit (16): time until which it stays raised
 G_TIME = 41  # s since start (sum of dt)
 G_RESTORED = 42  # 1 if the stiffness came from a saved state (valid from the start)
-GLUE_SIZE = 43
+G_TAU_FILTERED = 43
+GLUE_SIZE = 44
 N_RAW = 8
 
 SCRATCH_SIZE = 64
@@ -362,7 +365,9 @@ def estimator_step(
             uh_out[uh.X_R] = r_ground
 
     # 4. roll: gyro integrated, pulled towards the model's roll (kinematic below validity)
-    roll_ref = roll_uio if run_observers else kinematic_roll(u, r_ground, prm[P_G])
+    roll_kin = kinematic_roll(u, r_ground, prm[P_G])
+    w_uio = prm[P_ROLL_UIO_WEIGHT]
+    roll_ref = w_uio * roll_uio + (1.0 - w_uio) * roll_kin if run_observers else roll_kin
     roll = glue[G_ROLL] + dt * p_rate
     pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)
     roll += pull * (roll_ref - roll)
@@ -392,13 +397,16 @@ def estimator_step(
         y[4] = a_y
         y[5] = y_a
         first = ad_state[ad.INIT] == 0.0
+        if first:
+            glue[G_TAU_FILTERED] = tau
+        glue[G_TAU_FILTERED] += (1.0 - math.exp(-prm[P_TORQUE_FILTER_RATE] * dt)) * (tau - glue[G_TAU_FILTERED])
         allow = accel_ok and not gps_lost and glue[G_RUN_TIME] > prm[P_CONVERGE_TIME] and reasons_now == 0
         adaptive_step(
             ad_state,
             chi,
             ad_scratch,
             y,
-            tau,
+            glue[G_TAU_FILTERED],
             u,
             dt,
             allow,
@@ -478,9 +486,14 @@ def estimator_step(
             valid |= V_LAT_VEL | V_FY_FRONT | V_FY_REAR
     restored = glue[G_RESTORED] != 0.0
     settle = prm[P_STIFF_VALID_AFTER]
-    if restored or (glue[G_EXCITED_TIME + 0] >= settle and glue[G_EXCITED_TIME + 2] >= settle):
+    # an estimate pinned at its projection bound means the data disagree with the model: not published valid
+    pinned = 0
+    for k in range(4):
+        if abs(theta[k]) >= 0.99 * theta_bound[k]:
+            pinned |= 1 << k
+    if (restored or (glue[G_EXCITED_TIME + 0] >= settle and glue[G_EXCITED_TIME + 2] >= settle)) and not pinned & 5:
         valid |= V_CORNERING
-    if restored or (glue[G_EXCITED_TIME + 1] >= settle and glue[G_EXCITED_TIME + 3] >= settle):
+    if (restored or (glue[G_EXCITED_TIME + 1] >= settle and glue[G_EXCITED_TIME + 3] >= settle)) and not pinned & 10:
         valid |= V_CAMBER
 
     # ---- outputs ----
@@ -490,9 +503,11 @@ def estimator_step(
     est[E_RIDER_TORQUE] = tau
     est[E_STEER] = uh_out[uh.X_DELTA] if run_observers else delta
     est[E_STEER_RATE] = uh_out[uh.X_DELTA_DOT] if run_observers else 0.0
-    est[E_LAT_VEL] = x_ad[ad.VY] if run_observers else 0.0
-    est[E_FY_FRONT] = x_ad[ad.FYF] if run_observers else 0.0
-    est[E_FY_REAR] = x_ad[ad.FYR] if run_observers else 0.0
+    # lateral states from the UIHOSMO: on the evaluation rides they are 4x closer to truth than the
+    # adaptive observer's, whose input is the (noisy) reconstructed torque (docs/estimator.md)
+    est[E_LAT_VEL] = uh_out[uh.X_VY] if run_observers else 0.0
+    est[E_FY_FRONT] = uh_out[uh.X_FYF] if run_observers else 0.0
+    est[E_FY_REAR] = uh_out[uh.X_FYR] if run_observers else 0.0
     est[E_C_ALPHA_FRONT] = theta_nominal[0] + theta[0]
     est[E_C_GAMMA_FRONT] = theta_nominal[1] + theta[1]
     est[E_C_ALPHA_REAR] = theta_nominal[2] + theta[2]
@@ -506,9 +521,9 @@ def estimator_step(
     est[E_LAT_ACCEL] = a_y
     est[E_EXCITATION] = adapting_bits
     est[E_ROLL_ADAPTIVE] = x_ad[ad.PHI] if run_observers else 0.0
-    est[E_LAT_VEL_UIHOSMO] = uh_out[uh.X_VY] if run_observers else 0.0
-    est[E_FY_FRONT_UIHOSMO] = uh_out[uh.X_FYF] if run_observers else 0.0
-    est[E_FY_REAR_UIHOSMO] = uh_out[uh.X_FYR] if run_observers else 0.0
+    est[E_LAT_VEL_ADAPTIVE] = x_ad[ad.VY] if run_observers else 0.0
+    est[E_FY_FRONT_ADAPTIVE] = x_ad[ad.FYF] if run_observers else 0.0
+    est[E_FY_REAR_ADAPTIVE] = x_ad[ad.FYR] if run_observers else 0.0
     est[E_Y_A] = y_a
     # last line of defence: nothing non-finite leaves the step
     for k in range(ESTIMATES_SIZE):

@@ -90,9 +90,9 @@ E_ROLL_UIHOSMO = 17  # rad, the UIHOSMO's unknown-input roll before fusion (diag
 E_LAT_ACCEL = 18  # m/s^2, conditioned lateral acceleration at the centre of mass (diagnostic)
 E_EXCITATION = 19  # bits 0..3: stiffness i currently excited (adapting)
 E_ROLL_ADAPTIVE = 20  # rad, the adaptive observer's roll state (diagnostic)
-E_LAT_VEL_UIHOSMO = 21  # m/s, the UIHOSMO's states with nominal stiffness (diagnostic)
-E_FY_FRONT_UIHOSMO = 22  # N
-E_FY_REAR_UIHOSMO = 23  # N
+E_LAT_VEL_ADAPTIVE = 21  # m/s, the adaptive observer's lateral states (diagnostic)
+E_FY_FRONT_ADAPTIVE = 22  # N
+E_FY_REAR_ADAPTIVE = 23  # N
 E_Y_A = 24  # virtual output y_a of seed 001 eq. 15 as measured (diagnostic)
 ESTIMATES_SIZE = 25
 
@@ -130,9 +130,9 @@ ESTIMATE_NAMES = (
     "lat_accel",
     "excitation",
     "roll_adaptive",
-    "lat_vel_uihosmo",
-    "fy_front_uihosmo",
-    "fy_rear_uihosmo",
+    "lat_vel_adaptive",
+    "fy_front_adaptive",
+    "fy_rear_adaptive",
     "y_a",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
