@@ -60,6 +60,9 @@ ESTIMATOR_SCHEMA = Section(
                 "max_rider_torque": Number("N m", gt=0),
                 "max_tyre_force": Number("N", gt=0),
                 "max_lateral_velocity": Number("m/s", gt=0),
+                "max_abs_rate": Number("rad/s", gt=0),
+                "max_abs_accel": Number("m/s^2", gt=0),
+                "max_gps_speed": Number("m/s", gt=0),
             }
         ),
     }
@@ -119,6 +122,9 @@ class EstimatorTuning:
     max_rider_torque: float
     max_tyre_force: float
     max_lateral_velocity: float
+    max_abs_rate: float
+    max_abs_accel: float
+    max_gps_speed: float
 
     def speed_grid_ms(self) -> np.ndarray:
         """Design grid in m/s; the end points are always included."""

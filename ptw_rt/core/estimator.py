@@ -134,7 +134,10 @@ P_DIFF_SUBSTEPS = 25
 P_PE_FORGETTING = 26
 P_ROLL_UIO_WEIGHT = 27  # share of the UIHOSMO roll in the fusion reference (rest: kinematic roll)
 P_TORQUE_FILTER_RATE = 28  # 1/s, low-pass of the reconstructed torque fed to the adaptive observer
-PARAM_SIZE = 29
+P_MAX_RATE = 29  # plausibility limits of raw inputs (beyond: treated as missing, flagged)
+P_MAX_ACCEL = 30
+P_MAX_GPS_SPEED = 31
+PARAM_SIZE = 32
 
 # ---- supervisor / glue state (float64) ----
 G_INIT = 0  # 1 once the first usable sample has been seen
@@ -245,7 +248,16 @@ def estimator_step(
     )
     for k in range(N_RAW):
         v = sample[src[k]]
-        if math.isfinite(v):
+        if k < 3:
+            limit = prm[P_MAX_RATE]
+        elif k < 6:
+            limit = prm[P_MAX_ACCEL]
+        elif k == 6:
+            limit = prm[P_STEER_CPR]
+        else:
+            limit = prm[P_MAX_GPS_SPEED]
+        plausible = math.isfinite(v) and abs(v) <= limit and (k < 6 or v >= 0.0)
+        if plausible:
             raw[k] = v
         else:
             raw[k] = glue[G_LAST + k]

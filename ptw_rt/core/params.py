@@ -78,6 +78,9 @@ def build_params(settings, design) -> np.ndarray:
     prm[est_layout.P_YA_PHI_DOT], prm[est_layout.P_YA_DELTA_DOT] = ya[2], ya[3]
     prm[est_layout.P_DIFF_SUBSTEPS] = 1
     prm[est_layout.P_PE_FORGETTING] = design.ad_pe_forgetting
+    prm[est_layout.P_MAX_RATE] = est.max_abs_rate
+    prm[est_layout.P_MAX_ACCEL] = est.max_abs_accel
+    prm[est_layout.P_MAX_GPS_SPEED] = est.max_gps_speed
     prm[est_layout.P_ROLL_UIO_WEIGHT] = est.roll_reference_uihosmo_weight
     prm[est_layout.P_TORQUE_FILTER_RATE] = 1.0 / est.torque_filter_time_constant
     return prm

@@ -1,0 +1,210 @@
+"""The combined jitted step: modes, validity, guards, recovery, no NaN/inf out, cache-warm start, accuracy."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ptw_rt.core import layout as lay
+from ptw_rt.core.estimator import Estimator
+from ptw_rt.design.file import load_design
+from ptw_rt.paths import DEFAULT_DESIGN
+
+
+@pytest.fixture(scope="module")
+def estimator_factory():
+    from ptw_rt.paths import DEFAULT_CONFIG
+    from ptw_rt.settings import load_settings
+
+    s = load_settings(DEFAULT_CONFIG)
+    d = load_design(DEFAULT_DESIGN, s.config_hash)
+    return lambda: Estimator(s, d)
+
+
+def riding_sample(t: float, speed: float = 20.0, gps: bool = True) -> np.ndarray:
+    """A steady, gentle right turn at `speed` m/s (roll ~ atan(u r / g))."""
+    s = lay.new_sample()
+    r = 0.05
+    roll = math.atan(speed * r / 9.81)
+    s[lay.S_TIME] = t
+    s[lay.S_PITCH_RATE_BODY] = r * math.sin(roll)
+    s[lay.S_YAW_RATE_BODY] = r * math.cos(roll)
+    s[lay.S_ACCEL_Z] = -9.81 / math.cos(roll)
+    s[lay.S_STEER_COUNT] = 512.0
+    s[lay.S_GPS_SPEED] = speed
+    s[lay.S_GPS_FIX] = 3.0
+    fresh = lay.MSG_IMU_RATES | lay.MSG_IMU_ACCEL | lay.MSG_STEER
+    if gps and round(t * 100) % 10 == 0:
+        fresh |= lay.MSG_GPS
+    s[lay.S_FRESH] = fresh
+    return s
+
+
+def ride(est: Estimator, seconds: float, t0: float = 0.0, **kw) -> np.ndarray:
+    out = lay.new_estimates()
+    for k in range(int(round(seconds * 100))):
+        est.step(riding_sample(t0 + k * 0.01, **kw), out)
+    return out
+
+
+def test_goes_from_init_through_converging_to_valid(estimator_factory):
+    est = estimator_factory()
+    out = lay.new_estimates()
+    est.step(riding_sample(0.01), out)
+    assert out[lay.E_MODE] in (lay.MODE_INIT, lay.MODE_CONVERGING)
+    out = ride(est, 1.0)
+    assert out[lay.E_MODE] == lay.MODE_CONVERGING
+    out = ride(est, 3.0, t0=1.0)
+    assert out[lay.E_MODE] == lay.MODE_VALID
+    assert int(out[lay.E_REASONS]) == 0
+    valid = int(out[lay.E_VALID])
+    assert valid & lay.V_ROLL and valid & lay.V_RIDER_TORQUE and valid & lay.V_FY_FRONT
+    assert abs(out[lay.E_ROLL] - math.atan(20.0 * 0.05 / 9.81)) < math.radians(1.0)
+
+
+def test_standstill_says_so_and_holds_sane_outputs(estimator_factory):
+    est = estimator_factory()
+    out = ride(est, 3.0, speed=0.0)
+    assert int(out[lay.E_REASONS]) & lay.REASON_SPEED_LOW
+    assert out[lay.E_MODE] == lay.MODE_DEGRADED
+    assert not int(out[lay.E_VALID]) & (lay.V_ROLL | lay.V_RIDER_TORQUE | lay.V_CORNERING)
+    assert np.all(np.isfinite(out))
+    assert out[lay.E_RIDER_TORQUE] == 0.0
+
+
+def test_silent_imu_is_a_fault_and_recovery_needs_no_restart(estimator_factory):
+    est = estimator_factory()
+    out = ride(est, 4.0)
+    assert out[lay.E_MODE] == lay.MODE_VALID
+    s = riding_sample(4.01)
+    s[lay.S_STALE] = lay.MSG_IMU_RATES
+    s[lay.S_FRESH] = int(s[lay.S_FRESH]) & ~lay.MSG_IMU_RATES
+    est.step(s, out)
+    assert out[lay.E_MODE] == lay.MODE_FAULT
+    assert int(out[lay.E_REASONS]) & lay.REASON_STALE
+    assert not int(out[lay.E_VALID]) & lay.V_ROLL_RATE
+    out = ride(est, 3.0, t0=4.02)
+    assert out[lay.E_MODE] == lay.MODE_VALID
+
+
+def test_gps_dropout_is_flagged_and_speed_held(estimator_factory):
+    est = estimator_factory()
+    ride(est, 4.0)
+    out = ride(est, 2.0, t0=4.0, gps=False)
+    assert int(out[lay.E_REASONS]) & lay.REASON_GPS_LOST
+    assert out[lay.E_MODE] == lay.MODE_DEGRADED
+    assert abs(out[lay.E_SPEED] - 20.0) < 0.5
+    out = ride(est, 0.5, t0=6.0)
+    assert not int(out[lay.E_REASONS]) & lay.REASON_GPS_LOST
+
+
+def test_learned_stiffness_survives_reset_and_restore_marks_it_valid(estimator_factory):
+    est = estimator_factory()
+    learned = est.design.ad_theta_nominal * np.array([0.9, 1.1, 0.95, 1.05])
+    est.restore_stiffness(learned)
+    est.reset()
+    assert np.allclose(est.learned_stiffness(), learned)
+    out = ride(est, 0.5)
+    assert int(out[lay.E_VALID]) & lay.V_CORNERING
+    assert out[lay.E_C_ALPHA_FRONT] == pytest.approx(learned[0])
+
+
+def test_restore_clips_to_the_design_bounds(estimator_factory):
+    est = estimator_factory()
+    est.restore_stiffness(est.design.ad_theta_nominal * 10.0)
+    assert np.all(est.learned_stiffness() <= est.design.ad_theta_nominal + est.design.ad_theta_bound + 1e-9)
+    with pytest.raises(ValueError):
+        est.restore_stiffness([1.0, float("nan"), 1.0, 1.0])
+
+
+finite_or_not = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.floats(-1e6, 1e6),
+    st.sampled_from([0.0, 512.0, 1023.0, 30.0, -30.0, 3.0]),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    values=st.lists(st.lists(finite_or_not, min_size=10, max_size=10), min_size=1, max_size=40),
+    flags=st.lists(st.tuples(st.integers(0, 15), st.integers(0, 15), st.integers(0, 511)), min_size=1, max_size=40),
+)
+def test_never_emits_nan_or_inf_whatever_comes_in(estimator_factory, values, flags):
+    est = estimator_factory()
+    out = lay.new_estimates()
+    ride(est, 3.0)  # from a running, converged state: the worst place to be hit
+    for k, row in enumerate(values):
+        s = lay.new_sample()
+        s[1:10] = row[1:10]
+        s[lay.S_TIME] = 3.0 + 0.01 * k
+        fresh, stale, reasons = flags[k % len(flags)]
+        s[lay.S_FRESH], s[lay.S_STALE], s[lay.S_INPUT_REASONS] = fresh, stale, reasons
+        est.step(s, out)
+        assert np.all(np.isfinite(out)), out
+        assert out[lay.E_MODE] in range(5)
+    # and it comes back once the input is sane again
+    out = ride(est, 5.0, t0=10.0)
+    assert out[lay.E_MODE] == lay.MODE_VALID
+    assert np.all(np.isfinite(est.learned_stiffness()))
+
+
+def test_a_runaway_observer_is_reset_and_flagged_not_propagated(estimator_factory):
+    est = estimator_factory()
+    ride(est, 4.0)
+    est.uh_state[:7] = 1e12  # as if the observer had blown up
+    out = lay.new_estimates()
+    est.step(riding_sample(4.01), out)
+    assert int(out[lay.E_REASONS]) & lay.REASON_DIVERGING
+    assert np.all(np.isfinite(out)) and abs(out[lay.E_ROLL]) < 1.0
+    out = ride(est, 4.0, t0=4.02)
+    assert out[lay.E_MODE] == lay.MODE_VALID
+
+
+def test_cache_warm_start_compiles_nothing(tmp_path):
+    """Second process with the same NUMBA_CACHE_DIR loads the step from the cache (no compilation)."""
+    code = textwrap.dedent(
+        """
+        import json, time
+        t0 = time.perf_counter()
+        from ptw_rt.runtime.cycle import build_runner
+        from ptw_rt.core.estimator import estimator_step
+        r = build_runner("config/scooter.yaml")
+        r.cycle(0.01)
+        print(json.dumps({"first_cycle_s": time.perf_counter() - t0,
+                          "hits": sum(estimator_step.stats.cache_hits.values()),
+                          "misses": sum(estimator_step.stats.cache_misses.values())}))
+        """
+    )
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    runs = []
+    for _ in range(2):
+        p = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, timeout=600)
+        assert p.returncode == 0, p.stderr
+        runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
+    cold, warm = runs
+    assert cold["misses"] >= 1
+    assert warm["misses"] == 0 and warm["hits"] >= 1
+    assert any(tmp_path.joinpath("numba").rglob("*estimator_step*.nbi"))
+
+
+@pytest.mark.slow
+def test_dlc_100_meets_the_roll_target_through_the_daemons_code_path():
+    from ptw_rt.eval.evaluate import evaluate_scenario
+
+    r = evaluate_scenario("dlc_100").result
+    m, b = r["metrics"], r["baselines"]
+    assert m["roll_rmse_deg"] <= 1.0
+    assert m["roll_rmse_deg"] < b["kinematic_roll_rmse_deg"]
+    assert m["roll_rmse_deg"] < b["complementary_roll_rmse_deg"]
+    assert m["fy_front_rmse_n"] < b["smo_fy_rmse_n"]["front"] * 5  # same order as the force observers
+    assert m["valid_share"] > 0.8
