@@ -49,6 +49,8 @@ ESTIMATOR_SCHEMA = Section(
         "roll_fusion_time_constant": Number("s", gt=0),
         "roll_reference_uihosmo_weight": Number("", ge=0, le=1),
         "torque_filter_time_constant": Number("s", gt=0),
+        "force_observer_yaw_bound": Number("rad/s^3", gt=0),
+        "force_observer_lateral_bound": Number("m/s^3", gt=0),
         "derivative_filter_hz": Number("Hz", gt=0, lt=50),
         "supervisor": Section(
             {
@@ -63,6 +65,8 @@ ESTIMATOR_SCHEMA = Section(
                 "max_abs_rate": Number("rad/s", gt=0),
                 "max_abs_accel": Number("m/s^2", gt=0),
                 "max_gps_speed": Number("m/s", gt=0),
+                "stiffness_max_residual": Number("m/s^2", gt=0),
+                "adaptation_max_residual": Number("m/s^2", gt=0),
             }
         ),
     }
@@ -113,6 +117,8 @@ class EstimatorTuning:
     roll_fusion_time_constant: float
     roll_reference_uihosmo_weight: float
     torque_filter_time_constant: float
+    force_observer_yaw_bound: float
+    force_observer_lateral_bound: float
     derivative_filter_hz: float
     converge_time: float
     gps_hold_time: float
@@ -125,6 +131,8 @@ class EstimatorTuning:
     max_abs_rate: float
     max_abs_accel: float
     max_gps_speed: float
+    stiffness_max_residual: float
+    adaptation_max_residual: float
 
     def speed_grid_ms(self) -> np.ndarray:
         """Design grid in m/s; the end points are always included."""
@@ -173,6 +181,8 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         roll_fusion_time_constant=est["roll_fusion_time_constant"],
         roll_reference_uihosmo_weight=est["roll_reference_uihosmo_weight"],
         torque_filter_time_constant=est["torque_filter_time_constant"],
+        force_observer_yaw_bound=est["force_observer_yaw_bound"],
+        force_observer_lateral_bound=est["force_observer_lateral_bound"],
         derivative_filter_hz=est["derivative_filter_hz"],
         **est["supervisor"],
     )

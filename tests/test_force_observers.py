@@ -10,7 +10,7 @@ import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ptw_rt.eval.force_observers import (
+from ptw_rt.core.force_observers import (
     A_Y_MAX,
     RDOT_MAX,
     SMO_STATE_SIZE,

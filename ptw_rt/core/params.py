@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from ptw_rt.core import estimator as est_layout
+from ptw_rt.core.force_observers import lateral_yaw_constants
 from ptw_rt.model.sharp import descriptor
 
 # rows of the Sharp descriptor model (state order [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr])
@@ -81,6 +82,11 @@ def build_params(settings, design) -> np.ndarray:
     prm[est_layout.P_MAX_RATE] = est.max_abs_rate
     prm[est_layout.P_MAX_ACCEL] = est.max_abs_accel
     prm[est_layout.P_MAX_GPS_SPEED] = est.max_gps_speed
+    prm[est_layout.P_STIFF_MAX_RESIDUAL] = est.stiffness_max_residual
+    prm[est_layout.P_ADAPT_MAX_RESIDUAL] = est.adaptation_max_residual
+    prm[est_layout.P_STA_LC_R] = est.force_observer_yaw_bound
+    prm[est_layout.P_STA_LC_W] = est.force_observer_lateral_bound
+    prm[est_layout.P_GEOM : est_layout.P_GEOM + 4] = lateral_yaw_constants(veh)
     prm[est_layout.P_ROLL_UIO_WEIGHT] = est.roll_reference_uihosmo_weight
     prm[est_layout.P_TORQUE_FILTER_RATE] = 1.0 / est.torque_filter_time_constant
     return prm

@@ -66,7 +66,7 @@ import math
 
 import numpy as np
 
-from ptw_rt.eval.force_observers import lateral_yaw_constants
+from ptw_rt.core.force_observers import lateral_yaw_constants
 from ptw_rt.model.parameters import VehicleParameters
 from ptw_rt.model.sharp import DELTA, DELTA_DOT, PHI, PHI_DOT, VY, R, lpv_model, regressor
 

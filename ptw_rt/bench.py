@@ -1,0 +1,206 @@
+"""`ptw-rt bench`: speed figures measured in one run on this machine, printed as one JSON object.
+
+- step_us: the jitted estimator step called from Python (as the daemon calls it), p50/p99, and the
+  same code in a second process with NUMBA_DISABLE_JIT=1 (the ratio is what numba buys);
+- cycle_cpu_us: one daemon cycle's CPU work: decode the cycle's frames, condition, step, encode
+  the outputs;
+- replay_x_realtime: a recorded ride replayed through the shared cycle (decode, step, encode), one
+  log on one core and several logs on all cores;
+- start_s: process start to the first completed cycle, numba cache cold and warm;
+- rss_mb: peak resident memory of the warm-start process.
+Loop jitter and frame latency need the daemon on a bus: `jitter_us`/`latency_us` come from
+`ptw_rt.runtime.daemon` when it is available.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from ptw_rt.paths import DEFAULT_CONFIG
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _percentiles(samples_ns: np.ndarray) -> dict:
+    us = samples_ns / 1000.0
+    return {"p50": round(float(np.percentile(us, 50)), 2), "p99": round(float(np.percentile(us, 99)), 2)}
+
+
+def _riding_frames(seconds: float = 20.0):
+    from ptw_rt.runtime.cycle import build_runner
+    from ptw_rt.sim.recording import encode_frames
+    from ptw_rt.sim.ride import simulate
+
+    ride = simulate("dlc_100", duration=seconds)
+    runner = build_runner(DEFAULT_CONFIG)
+    return ride, list(encode_frames(ride, runner.codec))
+
+
+def measure_step(n: int) -> dict:
+    """Per-call time of Estimator.step on a realistic stream of Samples (run in this process)."""
+    from ptw_rt.core.layout import new_estimates
+    from ptw_rt.runtime.cycle import build_runner, drive_log
+
+    ride, frames = _riding_frames(12.0)
+    runner = build_runner(DEFAULT_CONFIG)
+    samples = []
+    drive_log(frames, runner, lambda now, e: samples.append(runner.sample.copy()), start=ride.epoch)
+    est = runner.estimator
+    out = new_estimates()
+    est.reset()
+    for s in samples[:50]:
+        est.step(s, out)  # compile / warm up
+    times = np.empty(n, dtype=np.int64)
+    m = len(samples)
+    clock = time.perf_counter_ns
+    for k in range(n):
+        s = samples[k % m]
+        t0 = clock()
+        est.step(s, out)
+        times[k] = clock() - t0
+    return _percentiles(times)
+
+
+def _step_in_subprocess(n: int, disable_jit: bool) -> dict:
+    env = dict(os.environ)
+    if disable_jit:
+        env["NUMBA_DISABLE_JIT"] = "1"
+    code = f"import json; from ptw_rt.bench import measure_step; print(json.dumps(measure_step({n})))"
+    p = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=True)
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def measure_cycle(n_cycles: int = 2000) -> dict | None:
+    """decode + step + encode of one cycle's frames (the daemon's CPU work per cycle, I/O excluded)."""
+    try:
+        from ptw_rt.runtime.outputs import OutputEncoder
+    except ImportError:
+        return None
+    from ptw_rt.runtime.cycle import build_runner
+
+    ride, frames = _riding_frames(12.0)
+    runner = build_runner(DEFAULT_CONFIG)
+    encoder = OutputEncoder(runner.codec)
+    dt = runner.sample_time
+    t_next = frames[0][0] + dt
+    i = 0
+    times = []
+    k = 0
+    clock = time.perf_counter_ns
+    while i < len(frames) and k < n_cycles:
+        t0 = clock()
+        while i < len(frames) and frames[i][0] <= t_next:
+            runner.on_frame(frames[i][0], frames[i][1], frames[i][2])
+            i += 1
+        est = runner.cycle(t_next)
+        encoder.frames(est, k, _status())
+        times.append(clock() - t0)
+        t_next += dt
+        k += 1
+    return _percentiles(np.asarray(times[100:], dtype=np.int64))
+
+
+def _status() -> dict:
+    return {"overrun_count": 0, "cycle_time_us": 0, "stale_bits": 0}
+
+
+def _replay_one(seconds: float) -> tuple[float, float]:
+    """(ride seconds, wall seconds) of replaying one simulated log through cycle + encoder."""
+    from ptw_rt.runtime.cycle import build_runner, drive_log
+
+    try:
+        from ptw_rt.runtime.outputs import OutputEncoder
+    except ImportError:
+        OutputEncoder = None  # noqa: N806
+    ride, frames = _riding_frames(seconds)
+    runner = build_runner(DEFAULT_CONFIG)
+    encoder = OutputEncoder(runner.codec) if OutputEncoder else None
+    counter = [0]
+
+    def on_cycle(now, est):
+        if encoder is not None:
+            encoder.frames(est, counter[0], _status())
+        counter[0] += 1
+
+    drive_log(frames[:200], runner, on_cycle, start=ride.epoch)  # warm
+    runner = build_runner(DEFAULT_CONFIG)
+    t0 = time.perf_counter()
+    drive_log(frames, runner, on_cycle, start=ride.epoch)
+    return ride.duration, time.perf_counter() - t0
+
+
+def measure_start(cache_dir: str) -> dict:
+    code = (
+        "import time, resource, json; t0 = time.perf_counter();"
+        "from ptw_rt.runtime.cycle import build_runner;"
+        f"r = build_runner({str(DEFAULT_CONFIG)!r}); r.cycle(0.01);"
+        "print(json.dumps({'start_s': time.perf_counter() - t0,"
+        " 'rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))"
+    )
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=True)
+    wall = time.perf_counter() - t0
+    inner = json.loads(p.stdout.strip().splitlines()[-1])
+    return {
+        "start_s": round(wall, 3),
+        "after_import_s": round(inner["start_s"], 3),
+        "rss_mb": round(inner["rss_mb"], 1),
+    }
+
+
+def run_bench(args) -> int:
+    quick = bool(getattr(args, "quick", False))
+    n_step = 5000 if quick else 50000
+    jit = measure_step(n_step)
+    nojit = _step_in_subprocess(200 if quick else 1000, disable_jit=True)
+    with tempfile.TemporaryDirectory() as cache:
+        cold = measure_start(cache)
+        warm = measure_start(cache)
+    seconds = 20.0 if quick else 60.0
+    ride_s, wall = _replay_one(seconds)
+    n_logs = max(2, os.cpu_count() or 1)
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        parts = list(pool.map(_replay_one, [seconds] * n_logs))
+    wall_many = time.perf_counter() - t0
+    result = {
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
+            "python": sys.version.split()[0],
+        },
+        "step_us": {"jit": jit, "no_jit": nojit, "ratio_p50": round(nojit["p50"] / jit["p50"], 1)},
+        "cycle_cpu_us": measure_cycle(1000 if quick else 5000),
+        "replay_x_realtime": {
+            "one_log": round(ride_s / wall, 1),
+            "many_logs": round(sum(p[0] for p in parts) / wall_many, 1),
+            "logs": n_logs,
+            "note": "frames pre-encoded in memory: decode, step and encode, no file I/O",
+        },
+        "start_s": {"cold": cold["start_s"], "warm": warm["start_s"]},
+        "rss_mb": warm["rss_mb"],
+    }
+    try:
+        from ptw_rt.runtime import daemon
+    except ImportError:
+        daemon = None
+    loop = getattr(daemon, "bench_loop", None) if daemon else None
+    if loop is not None:
+        result.update(loop(seconds=10.0 if quick else 30.0))
+    else:
+        result["jitter_us"] = result["latency_us"] = None
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
