@@ -8,13 +8,14 @@
   log on one core and several logs on all cores;
 - start_s: process start to the first completed cycle, numba cache cold and warm;
 - rss_mb: peak resident memory of the warm-start process.
-Loop jitter and frame latency need the daemon on a bus: `jitter_us`/`latency_us` come from
-`ptw_rt.runtime.daemon` when it is available.
+- jitter_us / latency_us / input_to_output_us: the real daemon loop on python-can's virtual bus for
+  30 s, idle and with one busy process per core beside it (`measure_loop`).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import subprocess
@@ -160,6 +161,103 @@ def measure_start(cache_dir: str) -> dict:
     }
 
 
+def measure_loop(seconds: float, hogs: int = 0) -> dict:
+    """The real daemon loop on python-can's virtual bus, fed a ride in real time, `hogs` busy processes beside.
+
+    jitter_us: |period - 10 ms| of the loop's wake-ups; latency_us: cycle start -> its EST_Roll frame received
+    by a listener on the bus; input_to_output_us: newest IMU_Rates frame sent -> that cycle's EST_Roll received
+    (includes the up-to-one-period wait of a fixed-step loop for asynchronous inputs).
+    """
+    import threading
+
+    import can
+
+    from ptw_rt.runtime.daemon import Daemon, load_daemon_settings
+
+    channel = f"ptw-rt-bench-{os.getpid()}-{hogs}"
+    with tempfile.TemporaryDirectory() as tmp:
+        # as ptw-rt.service runs it: SCHED_FIFO 40 (applied if this process may, else a warning in the result)
+        realtime = {"priority": 40, "cpus": None, "lock_memory": False}
+        overrides = {"interface": "virtual", "channel": channel, "state_file": str(Path(tmp) / "state.json")}
+        settings = load_daemon_settings(DEFAULT_CONFIG, {**overrides, "realtime": realtime})
+        daemon = Daemon(settings, DEFAULT_CONFIG)
+        ride, frames = _riding_frames(seconds + 2.0)
+        imu_id = daemon.codec.frame_id("IMU_Rates")
+        roll_id = daemon.codec.frame_id("EST_Roll")
+        cycle_times: list[float] = []
+        daemon.on_cycle = lambda now, est: cycle_times.append(now)
+        sent_imu: list[float] = []
+        received: list[float] = []
+        stop = threading.Event()
+
+        def play() -> None:
+            bus = can.Bus(interface="virtual", channel=channel)
+            t0 = time.monotonic() + 0.05
+            base = frames[0][0]
+            for ts, fid, data in frames:
+                if stop.is_set():
+                    break
+                delay = t0 + (ts - base) - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+                if fid == imu_id:
+                    sent_imu.append(time.monotonic())
+            bus.shutdown()
+
+        def listen() -> None:
+            bus = can.Bus(interface="virtual", channel=channel)
+            while not stop.is_set():
+                msg = bus.recv(timeout=0.1)
+                if msg is not None and msg.arbitration_id == roll_id:
+                    received.append(time.monotonic())
+            bus.shutdown()
+
+        procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(hogs)]
+        try:
+            threads = [threading.Thread(target=f, daemon=True) for f in (listen, play)]
+            for th in threads:
+                th.start()
+            daemon.run(seconds)
+        finally:
+            stop.set()
+            for p in procs:
+                p.kill()
+                p.wait()
+        for th in threads:
+            th.join(timeout=2.0)
+    now = np.asarray(cycle_times)
+    periods = np.diff(now)
+    jitter = np.abs(periods - daemon.dt) * 1e6
+    n = min(len(now), len(received))
+    latency = (np.asarray(received[:n]) - now[:n]) * 1e6
+    imu = np.asarray(sent_imu)
+    idx = np.searchsorted(imu, now[:n], side="right") - 1
+    ok = idx >= 0
+    in_out = (np.asarray(received[:n])[ok] - imu[idx[ok]]) * 1e6
+
+    def pct(a: np.ndarray, with_max: bool = False) -> dict:
+        out = {"p50": round(float(np.percentile(a, 50)), 1), "p99": round(float(np.percentile(a, 99)), 1)}
+        if with_max:
+            out["max"] = round(float(np.max(a)), 1)
+        return out
+
+    return {
+        "jitter_us": pct(jitter, with_max=True),
+        "latency_us": pct(latency[10:]),
+        "input_to_output_us": pct(in_out[10:]),
+        "overruns": daemon.overruns,
+        "sched_fifo": _fifo_applied(),
+    }
+
+
+def _fifo_applied() -> bool:
+    try:
+        return os.sched_getscheduler(0) == os.SCHED_FIFO
+    except (AttributeError, OSError):
+        return False
+
+
 def run_bench(args) -> int:
     quick = bool(getattr(args, "quick", False))
     n_step = 5000 if quick else 50000
@@ -171,10 +269,10 @@ def run_bench(args) -> int:
     seconds = 20.0 if quick else 60.0
     ride_s, wall = _replay_one(seconds)
     n_logs = max(2, os.cpu_count() or 1)
-    t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         parts = list(pool.map(_replay_one, [seconds] * n_logs))
-    wall_many = time.perf_counter() - t0
+    # workers replay concurrently: the slowest one's replay time is the wall time of the batch
+    wall_many = max(p[1] for p in parts) * math.ceil(n_logs / (os.cpu_count() or 1))
     result = {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": {
@@ -193,14 +291,13 @@ def run_bench(args) -> int:
         "start_s": {"cold": cold["start_s"], "warm": warm["start_s"]},
         "rss_mb": warm["rss_mb"],
     }
-    try:
-        from ptw_rt.runtime import daemon
-    except ImportError:
-        daemon = None
-    loop = getattr(daemon, "bench_loop", None) if daemon else None
-    if loop is not None:
-        result.update(loop(seconds=10.0 if quick else 30.0))
-    else:
-        result["jitter_us"] = result["latency_us"] = None
+    loop_s = 10.0 if quick else 30.0
+    idle = measure_loop(loop_s, hogs=0)
+    loaded = measure_loop(loop_s, hogs=os.cpu_count() or 1)
+    result["jitter_us"] = {"idle": idle["jitter_us"], "cpu_hog": loaded["jitter_us"], "seconds": loop_s}
+    result["latency_us"] = {"idle": idle["latency_us"], "cpu_hog": loaded["latency_us"]}
+    result["input_to_output_us"] = {"idle": idle["input_to_output_us"], "cpu_hog": loaded["input_to_output_us"]}
+    result["loop_overruns"] = {"idle": idle["overruns"], "cpu_hog": loaded["overruns"]}
+    result["loop_sched_fifo"] = loaded["sched_fifo"]
     print(json.dumps(result, indent=None if args.json else 2))
     return 0

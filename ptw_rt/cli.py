@@ -83,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML")
     p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument(
+        "--markdown",
+        action="store_true",
+        help="with --all: the results document (nominal + robustness tables, papers' figures), e.g. > docs/results.md",
+    )
     p.set_defaults(handler="ptw_rt.eval.evaluate:run_evaluate")
 
     p = sub.add_parser(
