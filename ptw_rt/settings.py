@@ -47,8 +47,16 @@ ESTIMATOR_SCHEMA = Section(
             }
         ),
         "roll_fusion_time_constant": Number("s", gt=0),
-        "roll_reference_uihosmo_weight": Number("", ge=0, le=1),
-        "torque_filter_time_constant": Number("s", gt=0),
+        "fusion_filter": Section(
+            {
+                "process_noise": Number("1/s", gt=0),
+                "rider_torque_rate": Number("N m/sqrt(s)", gt=0),
+                "steer_noise": Number("rad", gt=0),
+                "yaw_rate_noise": Number("rad/s", gt=0),
+                "roll_rate_noise": Number("rad/s", gt=0),
+                "lateral_accel_noise": Number("m/s^2", gt=0),
+            }
+        ),
         "force_observer_yaw_bound": Number("rad/s^3", gt=0),
         "force_observer_lateral_bound": Number("m/s^3", gt=0),
         "derivative_filter_hz": Number("Hz", gt=0, lt=50),
@@ -98,6 +106,18 @@ DESIGN_SECTIONS = ("vehicle", "estimator")  # what the design file depends on (t
 
 
 @dataclass(frozen=True)
+class KalmanTuning:
+    """Noise model of the fusion filter (ptw_rt.design.kalman)."""
+
+    process_noise: float  # share of the states' typical magnitude^2 per second: how far the plant strays from the model
+    rider_torque_rate: float  # N m / sqrt(s): random-walk intensity of the rider torque
+    steer_noise: float  # rad
+    yaw_rate_noise: float  # rad/s
+    roll_rate_noise: float  # rad/s
+    lateral_accel_noise: float  # m/s^2
+
+
+@dataclass(frozen=True)
 class EstimatorTuning:
     sample_time: float
     grid_min_kmh: float
@@ -115,8 +135,7 @@ class EstimatorTuning:
     excitation_camber_velocity: float
     excitation_time_constant: float
     roll_fusion_time_constant: float
-    roll_reference_uihosmo_weight: float
-    torque_filter_time_constant: float
+    kalman: KalmanTuning
     force_observer_yaw_bound: float
     force_observer_lateral_bound: float
     derivative_filter_hz: float
@@ -179,8 +198,7 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         excitation_camber_velocity=ad["excitation_camber_velocity"],
         excitation_time_constant=ad["excitation_time_constant"],
         roll_fusion_time_constant=est["roll_fusion_time_constant"],
-        roll_reference_uihosmo_weight=est["roll_reference_uihosmo_weight"],
-        torque_filter_time_constant=est["torque_filter_time_constant"],
+        kalman=KalmanTuning(**est["fusion_filter"]),
         force_observer_yaw_bound=est["force_observer_yaw_bound"],
         force_observer_lateral_bound=est["force_observer_lateral_bound"],
         derivative_filter_hz=est["derivative_filter_hz"],

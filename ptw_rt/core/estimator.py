@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 
 from ptw_rt.core import adaptive as ad
+from ptw_rt.core import kalman as kf
 from ptw_rt.core import uihosmo as uh
 from ptw_rt.core.adaptive import adaptive_step
 from ptw_rt.core.conditioning import (
@@ -48,8 +49,10 @@ from ptw_rt.core.layout import (
     E_EXCITATION,
     E_FY_FRONT,
     E_FY_FRONT_ADAPTIVE,
+    E_FY_FRONT_STA,
     E_FY_REAR,
     E_FY_REAR_ADAPTIVE,
+    E_FY_REAR_STA,
     E_LAT_ACCEL,
     E_LAT_VEL,
     E_LAT_VEL_ADAPTIVE,
@@ -63,6 +66,7 @@ from ptw_rt.core.layout import (
     E_SPEED,
     E_STEER,
     E_STEER_RATE,
+    E_TORQUE_UIHOSMO,
     E_VALID,
     E_Y_A,
     E_YAW_RATE,
@@ -133,8 +137,7 @@ P_YA_PHI_DOT = 23
 P_YA_DELTA_DOT = 24
 P_DIFF_SUBSTEPS = 25
 P_PE_FORGETTING = 26
-P_ROLL_UIO_WEIGHT = 27  # share of the UIHOSMO roll in the fusion reference (rest: kinematic roll)
-P_TORQUE_FILTER_RATE = 28  # 1/s, low-pass of the reconstructed torque fed to the adaptive observer
+# 27, 28: unused (kept so the indices below stay stable)
 P_MAX_RATE = 29  # plausibility limits of raw inputs (beyond: treated as missing, flagged)
 P_MAX_ACCEL = 30
 P_MAX_GPS_SPEED = 31
@@ -161,10 +164,11 @@ G_RESTORED = 42  # 1 if the stiffness came from a saved state (valid from the st
 G_TAU_FILTERED = 43
 G_AY_RESIDUAL_MS = 44  # mean square of the adaptive observer's a_y innovation (consistency of its model)
 G_STA = 45  # super-twisting force observer state (STA_STATE_SIZE)
-GLUE_SIZE = G_STA + STA_STATE_SIZE
+G_KF = G_STA + STA_STATE_SIZE  # fusion filter state (kf.STATE_SIZE)
+GLUE_SIZE = G_KF + kf.STATE_SIZE
 N_RAW = 8
 
-SCRATCH_SIZE = 72
+SCRATCH_SIZE = 96
 
 
 @njit(cache=True)
@@ -235,6 +239,9 @@ def estimator_step(
     theta_bound: np.ndarray,
     regressor_constants: np.ndarray,
     pe_threshold: np.ndarray,
+    kf_Phi: np.ndarray,
+    kf_K: np.ndarray,
+    kf_C: np.ndarray,
 ) -> None:
     dt = prm[P_DT]
     glue[G_TIME] += dt
@@ -338,6 +345,7 @@ def estimator_step(
     uh_scratch = scratch[24:48]
     ad_scratch = scratch[48:64]
     roll_uio = 0.0
+    tau_uio = 0.0
     tau = 0.0
     if run_observers:
         glue[G_OBSERVERS_ON] = 1.0
@@ -366,19 +374,19 @@ def estimator_step(
             int(prm[P_DIFF_SUBSTEPS]),
         )
         roll_uio = uh_out[uh.OUT_PHI]
-        tau = uh_out[uh.OUT_TAU]
+        tau_uio = uh_out[uh.OUT_TAU]
         if (
             not _all_finite(uh_out, uh.OUT_SIZE)
             or not _all_finite(uh_state, uh.STATE_SIZE)
             or abs(roll_uio) > prm[P_MAX_ROLL]
-            or abs(tau) > prm[P_MAX_TORQUE]
+            or abs(tau_uio) > prm[P_MAX_TORQUE]
         ):
             uh_state[uh.INIT] = 0.0
             ad_state[ad.INIT] = 0.0
             glue[G_RUN_TIME] = 0.0
             _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
             roll_uio = glue[G_ROLL]
-            tau = 0.0
+            tau_uio = 0.0
             for k in range(uh.OUT_SIZE):
                 uh_out[k] = 0.0
             uh_out[uh.X_DELTA] = delta
@@ -400,15 +408,52 @@ def estimator_step(
         for k in range(STA_STATE_SIZE):
             sta[k] = 0.0
 
-    # 4. roll: gyro integrated, pulled towards the model's roll (kinematic below validity)
+    # 4. fusion filter: roll, torque and the lateral states from all four measurements
+    kf_out = scratch[72:81]
+    kf_state = glue[G_KF : G_KF + kf.STATE_SIZE]
     roll_kin = kinematic_roll(u, r_ground, prm[P_G])
-    w_uio = prm[P_ROLL_UIO_WEIGHT]
-    roll_ref = w_uio * roll_uio + (1.0 - w_uio) * roll_kin if run_observers else roll_kin
-    roll = glue[G_ROLL] + dt * p_rate
-    pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)
-    roll += pull * (roll_ref - roll)
+    if run_observers:
+        y_kf = scratch[81:85]
+        y_kf[0] = delta
+        y_kf[1] = r_ground
+        y_kf[2] = p_rate
+        if accel_ok:
+            y_kf[3] = a_y
+        else:  # no accelerometer: no innovation from it (the model's own prediction)
+            acc = 0.0
+            for c in range(kf.N_Z):
+                acc += kf_C[3, c] * kf_state[c]
+            y_kf[3] = acc
+        kf.kalman_step(kf_state, kf_out, y_kf, u, math.tan(glue[G_ROLL]), grid, kf_Phi, kf_K, kf_C)
+        if (
+            not _all_finite(kf_out, kf.N_Z)
+            or abs(kf_out[kf.PHI]) > math.tan(prm[P_MAX_ROLL])
+            or abs(kf_out[kf.TAU]) > prm[P_MAX_TORQUE]
+        ):
+            kf_state[kf.INIT] = 0.0
+            _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
+            for k in range(kf.N_Z):
+                kf_out[k] = 0.0
+            kf_out[kf.PHI] = math.tan(glue[G_ROLL])
+            kf_out[kf.DELTA] = delta
+            kf_out[kf.R] = r_ground
+            kf_out[kf.PHI_DOT] = p_rate
+    else:
+        kf_state[kf.INIT] = 0.0
+        for k in range(kf.N_Z):
+            kf_out[k] = 0.0
+
+    # roll: the linear model's roll variable is tan(phi) of the real vehicle (g tan(phi) = u r in a steady
+    # turn, where the model has g phi = u r): atan maps it back. Below validity, gyro + kinematic roll.
+    if run_observers:
+        roll = math.atan(kf_out[kf.PHI])
+        tau = kf_out[kf.TAU]
+    else:
+        roll = glue[G_ROLL] + dt * p_rate
+        pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)
+        roll += pull * (roll_kin - roll)
     if not math.isfinite(roll) or abs(roll) > prm[P_MAX_ROLL]:
-        roll = _finite_or(roll_ref, 0.0)
+        roll = _finite_or(roll_kin, 0.0)
         if abs(roll) > prm[P_MAX_ROLL]:
             roll = 0.0
         _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
@@ -419,7 +464,7 @@ def estimator_step(
     adapting_bits = 0
     y_a = 0.0
     if run_observers:
-        delta_dot = uh_out[uh.X_DELTA_DOT]
+        delta_dot = kf_out[kf.DELTA_DOT]
         y_a = (
             prm[P_YA_R_DOT] * r_dot
             + prm[P_YA_PHI_DDOT] * p_dot
@@ -439,9 +484,6 @@ def estimator_step(
                 innovation -= ad_C[4, c] * ad_state[ad.X0 + c]
             forget = prm[P_PE_FORGETTING]
             glue[G_AY_RESIDUAL_MS] = forget * glue[G_AY_RESIDUAL_MS] + (1.0 - forget) * innovation * innovation
-        if first:
-            glue[G_TAU_FILTERED] = tau
-        glue[G_TAU_FILTERED] += (1.0 - math.exp(-prm[P_TORQUE_FILTER_RATE] * dt)) * (tau - glue[G_TAU_FILTERED])
         # learn only from an observer whose model explains what is measured (else the gradient is noise-driven)
         consistent = glue[G_AY_RESIDUAL_MS] < prm[P_ADAPT_MAX_RESIDUAL] * prm[P_ADAPT_MAX_RESIDUAL]
         allow = (
@@ -452,7 +494,7 @@ def estimator_step(
             chi,
             ad_scratch,
             y,
-            glue[G_TAU_FILTERED],
+            tau,
             u,
             dt,
             allow,
@@ -551,14 +593,12 @@ def estimator_step(
     est[E_ROLL] = roll
     est[E_ROLL_RATE] = p_rate
     est[E_RIDER_TORQUE] = tau
-    est[E_STEER] = uh_out[uh.X_DELTA] if run_observers else delta
-    est[E_STEER_RATE] = uh_out[uh.X_DELTA_DOT] if run_observers else 0.0
-    # lateral velocity from the UIHOSMO, forces from the super-twisting observer: on the evaluation rides
-    # they are 3-10x closer to truth than the adaptive observer's, whose input is the reconstructed
-    # torque (docs/estimator.md, "What is published from which observer")
-    est[E_LAT_VEL] = uh_out[uh.X_VY] if run_observers else 0.0
-    est[E_FY_FRONT] = forces[0]
-    est[E_FY_REAR] = forces[1]
+    est[E_STEER] = kf_out[kf.DELTA] if run_observers else delta
+    est[E_STEER_RATE] = kf_out[kf.DELTA_DOT] if run_observers else 0.0
+    # published states from the fusion filter (docs/estimator.md, "What is published from which observer")
+    est[E_LAT_VEL] = kf_out[kf.VY] if run_observers else 0.0
+    est[E_FY_FRONT] = kf_out[kf.FYF] if run_observers else 0.0
+    est[E_FY_REAR] = kf_out[kf.FYR] if run_observers else 0.0
     est[E_C_ALPHA_FRONT] = theta_nominal[0] + theta[0]
     est[E_C_GAMMA_FRONT] = theta_nominal[1] + theta[1]
     est[E_C_ALPHA_REAR] = theta_nominal[2] + theta[2]
@@ -572,6 +612,9 @@ def estimator_step(
     est[E_LAT_ACCEL] = a_y
     est[E_EXCITATION] = adapting_bits
     est[E_ROLL_ADAPTIVE] = x_ad[ad.PHI] if run_observers else 0.0
+    est[E_TORQUE_UIHOSMO] = tau_uio
+    est[E_FY_FRONT_STA] = forces[0]
+    est[E_FY_REAR_STA] = forces[1]
     est[E_LAT_VEL_ADAPTIVE] = x_ad[ad.VY] if run_observers else 0.0
     est[E_FY_FRONT_ADAPTIVE] = x_ad[ad.FYF] if run_observers else 0.0
     est[E_FY_REAR_ADAPTIVE] = x_ad[ad.FYR] if run_observers else 0.0
@@ -624,6 +667,9 @@ class Estimator:
             c(d.ad_theta_bound, dtype=np.float64),
             c(d.regressor_constants, dtype=np.float64),
             c(d.ad_pe_threshold, dtype=np.float64),
+            c(d.kf_Phi),
+            c(d.kf_K),
+            c(d.kf_C),
         )
         self._args = (
             self.glue,

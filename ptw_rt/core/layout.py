@@ -94,7 +94,10 @@ E_LAT_VEL_ADAPTIVE = 21  # m/s, the adaptive observer's lateral states (diagnost
 E_FY_FRONT_ADAPTIVE = 22  # N
 E_FY_REAR_ADAPTIVE = 23  # N
 E_Y_A = 24  # virtual output y_a of seed 001 eq. 15 as measured (diagnostic)
-ESTIMATES_SIZE = 25
+E_TORQUE_UIHOSMO = 25  # N m, the UIHOSMO's unknown-input torque (diagnostic)
+E_FY_FRONT_STA = 26  # N, seed 003's super-twisting force observer (independent cross-check)
+E_FY_REAR_STA = 27
+ESTIMATES_SIZE = 28
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -134,6 +137,9 @@ ESTIMATE_NAMES = (
     "fy_front_adaptive",
     "fy_rear_adaptive",
     "y_a",
+    "torque_uihosmo",
+    "fy_front_sta",
+    "fy_rear_sta",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

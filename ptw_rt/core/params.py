@@ -87,6 +87,5 @@ def build_params(settings, design) -> np.ndarray:
     prm[est_layout.P_STA_LC_R] = est.force_observer_yaw_bound
     prm[est_layout.P_STA_LC_W] = est.force_observer_lateral_bound
     prm[est_layout.P_GEOM : est_layout.P_GEOM + 4] = lateral_yaw_constants(veh)
-    prm[est_layout.P_ROLL_UIO_WEIGHT] = est.roll_reference_uihosmo_weight
-    prm[est_layout.P_TORQUE_FILTER_RATE] = 1.0 / est.torque_filter_time_constant
+
     return prm

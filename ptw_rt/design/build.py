@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from ptw_rt.design import kalman
 from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
 from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
@@ -59,6 +60,7 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         ad_B.append(Bd)
     ad_B = np.array(ad_B)
     nominal = np.array(p.nominal_stiffness())
+    kf_Phi, kf_K = kalman.design_grid(p, grid, dt, est.kalman)
     data = DesignData(
         format_version=FORMAT_VERSION,
         config_hash=settings.config_hash,
@@ -103,6 +105,9 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         ad_lmi_slack=sol.slack,
         ad_lmi_residual=sol.residual,
         regressor_constants=np.array([p.sigma_f, p.sigma_r, p.l_f, p.l_r, p.caster, p.trail]),
+        kf_Phi=kf_Phi,
+        kf_K=kf_K,
+        kf_C=kalman.output_matrix(p),
     )
     return data, {"lmi_solution": sol, "uihosmo": uh}
 
@@ -117,14 +122,18 @@ def check_design(data: DesignData) -> dict[str, Any]:
     grid = data.grid
     uh_rho = [uihosmo_radius(data.uh_Phi[i], data.uh_Phi22[i]) for i in range(len(grid))]
     ad_rho = [spectral_radius(data.ad_Phi[i]) for i in range(len(grid))]
-    worst = {"uihosmo": 0.0, "adaptive": 0.0}
-    worst_at = {"uihosmo": None, "adaptive": None}
+    kf_rho = [spectral_radius(kalman.error_dynamics(data.kf_Phi[i], data.kf_K[i], data.kf_C)) for i in range(len(grid))]
+    worst = {"uihosmo": 0.0, "adaptive": 0.0, "fusion": 0.0}
+    worst_at = {"uihosmo": None, "adaptive": None, "fusion": None}
     for i in range(len(grid) - 1):
         for w in np.linspace(0.0, 1.0, BETWEEN_GRID_SAMPLES + 2)[1:-1]:
             u = (1 - w) * grid[i] + w * grid[i + 1]
             r_uh = uihosmo_radius(interpolate(grid, data.uh_Phi, u), interpolate(grid, data.uh_Phi22, u))
             r_ad = spectral_radius(interpolate(grid, data.ad_Phi, u))
-            for key, r in (("uihosmo", r_uh), ("adaptive", r_ad)):
+            r_kf = spectral_radius(
+                kalman.error_dynamics(interpolate(grid, data.kf_Phi, u), interpolate(grid, data.kf_K, u), data.kf_C)
+            )
+            for key, r in (("uihosmo", r_uh), ("adaptive", r_ad), ("fusion", r_kf)):
                 if r > worst[key]:
                     worst[key], worst_at[key] = r, u
     feasible = bool(math.isfinite(data.ad_lmi_slack))
@@ -140,26 +149,38 @@ def check_design(data: DesignData) -> dict[str, Any]:
             "spectral_radius": ad_rho,
             "lmi": {"feasible": feasible, "slack": data.ad_lmi_slack, "residual": data.ad_lmi_residual},
         },
+        "fusion": {"spectral_radius": kf_rho},
         "between_grid": {
             "max_spectral_radius": max(worst.values()),
             "uihosmo": {"max_spectral_radius": worst["uihosmo"], "at_kmh": worst_at["uihosmo"] * 3.6},
             "adaptive": {"max_spectral_radius": worst["adaptive"], "at_kmh": worst_at["adaptive"] * 3.6},
+            "fusion": {"max_spectral_radius": worst["fusion"], "at_kmh": worst_at["fusion"] * 3.6},
             "samples_per_interval": BETWEEN_GRID_SAMPLES,
         },
     }
     result["stable"] = bool(
-        feasible and max(uh_rho) < 1.0 and max(ad_rho) < 1.0 and result["between_grid"]["max_spectral_radius"] < 1.0
+        feasible
+        and max(uh_rho) < 1.0
+        and max(ad_rho) < 1.0
+        and max(kf_rho) < 1.0
+        and result["between_grid"]["max_spectral_radius"] < 1.0
     )
     return result
 
 
 def format_check(result: dict[str, Any]) -> str:
-    lines = [f"{'speed [km/h]':>12} {'UIHOSMO rho':>12} {'detectable':>10} {'adaptive rho':>13}"]
-    uh, ad = result["uihosmo"], result["adaptive"]
-    for v, r1, d, r2 in zip(
-        result["grid_kmh"], uh["spectral_radius"], uh["detectable"], ad["spectral_radius"], strict=True
-    ):
-        lines.append(f"{v:12.1f} {r1:12.4f} {'yes' if d else 'NO':>10} {r2:13.4f}")
+    lines = [f"{'speed [km/h]':>12} {'UIHOSMO rho':>12} {'detectable':>10} {'adaptive rho':>13} {'fusion rho':>11}"]
+    uh, ad, kf = result["uihosmo"], result["adaptive"], result["fusion"]
+    rows = zip(
+        result["grid_kmh"],
+        uh["spectral_radius"],
+        uh["detectable"],
+        ad["spectral_radius"],
+        kf["spectral_radius"],
+        strict=True,
+    )
+    for v, r1, d, r2, r3 in rows:
+        lines.append(f"{v:12.1f} {r1:12.4f} {'yes' if d else 'NO':>10} {r2:13.4f} {r3:11.4f}")
     bg = result["between_grid"]
     lmi = ad["lmi"]
     lines += [
@@ -167,7 +188,8 @@ def format_check(result: dict[str, Any]) -> str:
         f"estimates valid above {uh['min_valid_speed_kmh']:.1f} km/h",
         f"between grid points ({bg['samples_per_interval']} per interval, interpolated gains): max rho "
         f"UIHOSMO {bg['uihosmo']['max_spectral_radius']:.4f} at {bg['uihosmo']['at_kmh']:.1f} km/h, "
-        f"adaptive {bg['adaptive']['max_spectral_radius']:.4f} at {bg['adaptive']['at_kmh']:.1f} km/h",
+        f"adaptive {bg['adaptive']['max_spectral_radius']:.4f} at {bg['adaptive']['at_kmh']:.1f} km/h, "
+        f"fusion {bg['fusion']['max_spectral_radius']:.4f} at {bg['fusion']['at_kmh']:.1f} km/h",
         f"LMI feasible: {lmi['feasible']}, slack {lmi['slack']:.3g}, ||D^T P - T C|| {lmi['residual']:.3g}",
         "STABLE at and between every grid speed" if result["stable"] else "NOT STABLE: see the rows above",
     ]

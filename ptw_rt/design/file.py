@@ -14,7 +14,7 @@ import numpy as np
 
 from ptw_rt.errors import UserFacingError
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -63,6 +63,10 @@ class DesignData:
     ad_lmi_residual: float
     # regressor constants (seed 001 eq. 8): sigma_f, sigma_r, l_f, l_r, caster, trail
     regressor_constants: np.ndarray  # (6,)
+    # fusion filter (steady-state Kalman, state [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau])
+    kf_Phi: np.ndarray  # (G, 9, 9) exact ZOH of the torque-augmented model
+    kf_K: np.ndarray  # (G, 9, 4) corrector gain for y = [delta, r, phi_dot, a_y]
+    kf_C: np.ndarray  # (4, 9)
 
     def save(self, path: str | Path) -> None:
         path = Path(path)

@@ -1,0 +1,102 @@
+"""Fusion filter (steady-state Kalman on the torque-augmented Sharp model): design and jitted step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from ptw_rt.core import kalman as kf
+from ptw_rt.design import kalman as kalman_design
+from ptw_rt.design.build import check_design
+from ptw_rt.model.sharp import state_space
+
+DT = 0.01
+
+
+@pytest.fixture(scope="module")
+def design(fresh_design):
+    return fresh_design[0]
+
+
+def spectral_radius(M: np.ndarray) -> float:
+    return float(np.max(np.abs(np.linalg.eigvals(M))))
+
+
+def test_error_dynamics_stable_on_and_between_grid_points(design):
+    result = check_design(design)
+    radii = result["fusion"]["spectral_radius"]
+    assert len(radii) == len(design.grid)
+    assert max(radii) < 0.99
+    for u in np.linspace(design.grid[0], design.grid[-1], 57):
+        i = int(np.clip(np.searchsorted(design.grid, u) - 1, 0, len(design.grid) - 2))
+        w = (u - design.grid[i]) / (design.grid[i + 1] - design.grid[i])
+        Phi = (1 - w) * design.kf_Phi[i] + w * design.kf_Phi[i + 1]
+        K = (1 - w) * design.kf_K[i] + w * design.kf_K[i + 1]
+        assert spectral_radius(kalman_design.error_dynamics(Phi, K, design.kf_C)) < 0.99, u
+
+
+def test_transition_is_the_exact_zero_order_hold(design, vehicle):
+    """Phi at a grid speed is expm of the augmented model: exact, not Euler (poles faster than 1/dt)."""
+    g = len(design.grid) // 2
+    A, B = state_space(vehicle, float(design.grid[g]))
+    Aa = np.zeros((9, 9))
+    Aa[:8, :8] = A
+    Aa[:8, 8] = B
+    np.testing.assert_allclose(design.kf_Phi[g], expm(Aa * DT), rtol=1e-9, atol=1e-12)
+    # Euler would be unstable or far off here: the model is stiff at 100 Hz
+    assert np.max(np.abs(np.eye(9) + Aa * DT - design.kf_Phi[g])) > 1e-3
+
+
+def simulate_linear(design, vehicle, u: float, torque: np.ndarray):
+    """Exact discrete simulation of the linear model under piecewise-constant rider torque."""
+    A, B = state_space(vehicle, u)
+    Ad_B = expm(np.block([[A, B[:, None]], [np.zeros((1, 9))]]) * DT)
+    Ad, Bd = Ad_B[:8, :8], Ad_B[:8, 8]
+    x = np.zeros(8)
+    states = []
+    for tau in torque:
+        states.append(x.copy())
+        x = Ad @ x + Bd * tau
+    X = np.array(states)
+    Y = X @ design.kf_C[:, :8].T
+    return X, Y
+
+
+@pytest.mark.parametrize("u_kmh", [40.0, 77.0, 100.0])
+def test_reconstructs_states_and_rider_torque_on_the_linear_model(design, vehicle, u_kmh):
+    """Noise-free measurements of the model it was designed on: the unknown torque converges to truth."""
+    u = u_kmh / 3.6
+    n = 800
+    t = np.arange(n) * DT
+    torque = np.where(t < 1.0, 0.0, 8.0) + 5.0 * np.sin(2 * np.pi * 0.4 * t) * (t > 3.0)
+    X, Y = simulate_linear(design, vehicle, u, torque)
+    state, out = kf.new_state(), np.zeros(kf.N_Z)
+    est = np.zeros((n, kf.N_Z))
+    for k in range(n):
+        kf.kalman_step(state, out, Y[k], u, 0.0, design.grid, design.kf_Phi, design.kf_K, design.kf_C)
+        est[k] = out
+    late = t > 6.0
+    # the filter is one cycle behind an input step at most; a smooth torque is tracked closely
+    assert np.sqrt(np.mean((est[late, kf.TAU] - torque[late]) ** 2)) < 0.05 * np.max(np.abs(torque))
+    for i, scale in ((kf.PHI, 0.002), (kf.VY, 0.005), (kf.FYF, 5.0), (kf.FYR, 5.0)):
+        assert np.max(np.abs(est[late, i] - X[late, i])) < scale, (i, np.max(np.abs(est[late, i] - X[late, i])))
+
+
+def test_starts_from_the_given_roll_and_measured_outputs(design):
+    state, out = kf.new_state(), np.zeros(kf.N_Z)
+    y = np.array([0.01, 0.05, 0.02, 0.5])
+    kf.kalman_step(state, out, y, 20.0, 0.1, design.grid, design.kf_Phi, design.kf_K, design.kf_C)
+    assert state[kf.INIT] == 1.0
+    assert out[kf.PHI] == pytest.approx(0.1, abs=0.02)
+    assert out[kf.DELTA] == pytest.approx(0.01, abs=1e-3)
+    assert np.all(np.isfinite(out))
+
+
+def test_speed_outside_the_grid_is_clamped_not_extrapolated(design):
+    """Speeds beyond the design range use the edge design (the supervisor flags them); never NaN."""
+    for u in (0.0, -1.0, 200.0):
+        state, out, y = kf.new_state(), np.zeros(kf.N_Z), np.array([0.02, 0.1, 0.0, 1.0])
+        for _ in range(300):
+            kf.kalman_step(state, out, y, u, 0.0, design.grid, design.kf_Phi, design.kf_K, design.kf_C)
+        assert np.all(np.isfinite(out)), u
