@@ -144,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--scenario", default="dlc_100")
     p.add_argument("--speed", type=float, default=1.0, help="playback speed (1 = real time)")
+    p.add_argument("--duration", type=float, default=None, help="ride seconds (default: the scenario's, at most 25)")
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="where the logs and report go")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
     p.set_defaults(handler="ptw_rt.runtime.demo:run_demo")
