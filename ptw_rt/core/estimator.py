@@ -7,13 +7,16 @@ Per cycle (`estimator_step`):
      ground yaw rate and horizontal lateral acceleration de-rolled with the previous
      cycle's roll, lateral acceleration moved from the IMU to the centre of mass, and
      the virtual output y_a of seed 001 eq. 15 from filtered derivatives of the rates;
-  3. UIHOSMO (seed 000 case 2): roll and rider torque as unknown inputs;
-  4. roll fusion: the gyro's roll rate integrated, pulled towards the UIHOSMO roll with
-     a time constant (see `docs/estimator.md`: the UIHOSMO roll is unbiased but carries
-     the 10-bit encoder's quantisation, the gyro is smooth but drifts; each covers the
-     other's weakness, and the result no longer depends on the de-rolled yaw rate loop);
-  5. LPV adaptive observer (seed 001): lateral states and tyre stiffness, adapting only
-     when the supervisor allows and the regressor is excited;
+  3. UIHOSMO (seed 000 case 2): roll and rider torque as unknown inputs, published as
+     diagnostics; seed 003's super-twisting force observer, also a diagnostic cross-check;
+  4. fusion filter (`ptw_rt.core.kalman`): a steady-state Kalman filter on the Sharp model
+     with the rider torque as a random-walk state, fed [steer, yaw rate, roll rate, a_y];
+     its roll, torque, steer rate, lateral velocity and tyre forces are the published ones
+     (`docs/estimator.md`: with a 10-bit encoder the UIHOSMO's derivatives of the steer
+     angle are mostly quantisation, the gyros and a_y carry the same dynamics cleanly);
+  5. LPV adaptive observer (seed 001): tyre stiffness, driven by the fusion filter's
+     torque and steer rate, adapting only when the supervisor allows, the regressor is
+     excited and the observer explains a_y;
   6. supervisor: mode, reason bits, per-signal validity; guards against NaN/inf and
      runaway observers by resetting the observer concerned (learned stiffness is kept).
 
