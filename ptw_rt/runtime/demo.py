@@ -348,7 +348,11 @@ def run_demo(args) -> int:
     if state_file.exists():
         print(f"state file:   {state_file} (learned tyre stiffness)")
     else:
-        print(f"state file:   {state_file} not written (no tyre stiffness learned yet: {daemon.state_note})")
+        print(
+            f"state file:   not written: the tyre stiffness was never published valid on this ride "
+            f"({ride.duration:g} s; it needs {daemon.settings.estimator.stiffness_valid_after:g} s of "
+            "excited adaptation and an adaptive observer that explains a_y)"
+        )
     if report_dir is not None:
         print(f"report:       {report_dir}/ (summary.md, *.png)")
     print(f"wall time:    {time.monotonic() - wall0:.1f} s")
