@@ -55,6 +55,7 @@ ESTIMATOR_SCHEMA = Section(
                 "yaw_rate_noise": Number("rad/s", gt=0),
                 "roll_rate_noise": Number("rad/s", gt=0),
                 "lateral_accel_noise": Number("m/s^2", gt=0),
+                "gyro_bias_rate": Number("rad/s/sqrt(s)", gt=0),
             }
         ),
         "force_observer_yaw_bound": Number("rad/s^3", gt=0),
@@ -115,6 +116,7 @@ class KalmanTuning:
     yaw_rate_noise: float  # rad/s
     roll_rate_noise: float  # rad/s
     lateral_accel_noise: float  # m/s^2
+    gyro_bias_rate: float  # rad/s / sqrt(s): random walk of the yaw- and roll-gyro biases (estimated as states)
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,9 @@ from ptw_rt.core.layout import (
     E_RIDER_TORQUE,
     E_ROLL,
     E_ROLL_ADAPTIVE,
+    E_ROLL_GYRO_BIAS,
     E_ROLL_RATE,
+    E_ROLL_RATE_MEASURED,
     E_ROLL_UIHOSMO,
     E_SPEED,
     E_STEER,
@@ -72,6 +74,7 @@ from ptw_rt.core.layout import (
     E_TORQUE_UIHOSMO,
     E_VALID,
     E_Y_A,
+    E_YAW_GYRO_BIAS,
     E_YAW_RATE,
     ESTIMATES_SIZE,
     MODE_CONVERGING,
@@ -412,11 +415,11 @@ def estimator_step(
             sta[k] = 0.0
 
     # 4. fusion filter: roll, torque and the lateral states from all four measurements
-    kf_out = scratch[72:81]
+    kf_out = scratch[72:83]
     kf_state = glue[G_KF : G_KF + kf.STATE_SIZE]
     roll_kin = kinematic_roll(u, r_ground, prm[P_G])
     if run_observers:
-        y_kf = scratch[81:85]
+        y_kf = scratch[84:88]
         y_kf[0] = delta
         y_kf[1] = r_ground
         y_kf[2] = p_rate
@@ -427,13 +430,24 @@ def estimator_step(
             for c in range(kf.N_Z):
                 acc += kf_C[3, c] * kf_state[c]
             y_kf[3] = acc
+        # the gyro biases learn only from clean input: a held, stale or implausible value would be taken for bias
+        bias_trusted = accel_ok and reasons_now == 0
+        for k in range(16):
+            if glue[G_REASON_UNTIL + k] > glue[G_TIME]:
+                bias_trusted = False
+        yaw_bias, roll_bias = kf_state[kf.YAW_BIAS], kf_state[kf.ROLL_BIAS]
         kf.kalman_step(kf_state, kf_out, y_kf, u, math.tan(glue[G_ROLL]), grid, kf_Phi, kf_K, kf_C)
+        if not bias_trusted:
+            kf_state[kf.YAW_BIAS] = yaw_bias
+            kf_state[kf.ROLL_BIAS] = roll_bias
         if (
             not _all_finite(kf_out, kf.N_Z)
             or abs(kf_out[kf.PHI]) > math.tan(prm[P_MAX_ROLL])
             or abs(kf_out[kf.TAU]) > prm[P_MAX_TORQUE]
         ):
             kf_state[kf.INIT] = 0.0
+            kf_state[kf.YAW_BIAS] = 0.0  # a diverged filter's bias estimates are not trusted either
+            kf_state[kf.ROLL_BIAS] = 0.0
             _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
             for k in range(kf.N_Z):
                 kf_out[k] = 0.0
@@ -452,7 +466,7 @@ def estimator_step(
         roll = math.atan(kf_out[kf.PHI])
         tau = kf_out[kf.TAU]
     else:
-        roll = glue[G_ROLL] + dt * p_rate
+        roll = glue[G_ROLL] + dt * (p_rate - kf_state[kf.ROLL_BIAS])
         pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)
         roll += pull * (roll_kin - roll)
     if not math.isfinite(roll) or abs(roll) > prm[P_MAX_ROLL]:
@@ -475,8 +489,8 @@ def estimator_step(
         )
         y = scratch[17:23]
         y[0] = delta
-        y[1] = r_ground
-        y[2] = p_rate
+        y[1] = r_ground - kf_out[kf.YAW_BIAS]  # gyro biases from the fusion filter
+        y[2] = p_rate - kf_out[kf.ROLL_BIAS]
         y[3] = delta_dot
         y[4] = a_y
         y[5] = y_a
@@ -594,7 +608,7 @@ def estimator_step(
     # ---- outputs ----
     x_ad = ad_state[ad.X0 : ad.X1]
     est[E_ROLL] = roll
-    est[E_ROLL_RATE] = p_rate
+    est[E_ROLL_RATE] = p_rate - kf_state[kf.ROLL_BIAS]
     est[E_RIDER_TORQUE] = tau
     est[E_STEER] = kf_out[kf.DELTA] if run_observers else delta
     est[E_STEER_RATE] = kf_out[kf.DELTA_DOT] if run_observers else 0.0
@@ -608,6 +622,9 @@ def estimator_step(
     est[E_C_GAMMA_REAR] = theta_nominal[3] + theta[3]
     est[E_SPEED] = u
     est[E_YAW_RATE] = r_ground
+    est[E_ROLL_RATE_MEASURED] = p_rate
+    est[E_YAW_GYRO_BIAS] = kf_state[kf.YAW_BIAS]
+    est[E_ROLL_GYRO_BIAS] = kf_state[kf.ROLL_BIAS]
     est[E_MODE] = mode
     est[E_REASONS] = reasons
     est[E_VALID] = valid

@@ -82,7 +82,7 @@ E_C_GAMMA_FRONT = 9
 E_C_ALPHA_REAR = 10
 E_C_GAMMA_REAR = 11
 E_SPEED = 12  # m/s, conditioned forward speed
-E_YAW_RATE = 13  # rad/s, ground frame
+E_YAW_RATE = 13  # rad/s, ground frame, as measured (before the fusion filter's bias correction)
 E_MODE = 14  # MODE_*
 E_REASONS = 15  # REASON_* bits
 E_VALID = 16  # V_* bits
@@ -97,7 +97,10 @@ E_Y_A = 24  # virtual output y_a of seed 001 eq. 15 as measured (diagnostic)
 E_TORQUE_UIHOSMO = 25  # N m, the UIHOSMO's unknown-input torque (diagnostic)
 E_FY_FRONT_STA = 26  # N, seed 003's super-twisting force observer (independent cross-check)
 E_FY_REAR_STA = 27
-ESTIMATES_SIZE = 28
+E_ROLL_RATE_MEASURED = 28  # rad/s, the conditioned roll-rate gyro before bias correction (what baselines use)
+E_YAW_GYRO_BIAS = 29  # rad/s, the fusion filter's estimate of the yaw-gyro bias (diagnostic)
+E_ROLL_GYRO_BIAS = 30  # rad/s, ... of the roll-gyro bias
+ESTIMATES_SIZE = 31
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -140,6 +143,9 @@ ESTIMATE_NAMES = (
     "torque_uihosmo",
     "fy_front_sta",
     "fy_rear_sta",
+    "roll_rate_measured",
+    "yaw_gyro_bias",
+    "roll_gyro_bias",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from ptw_rt.errors import UserFacingError
 
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -64,8 +64,8 @@ class DesignData:
     # regressor constants (seed 001 eq. 8): sigma_f, sigma_r, l_f, l_r, caster, trail
     regressor_constants: np.ndarray  # (6,)
     # fusion filter (steady-state Kalman, state [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau])
-    kf_Phi: np.ndarray  # (G, 9, 9) exact ZOH of the torque-augmented model
-    kf_K: np.ndarray  # (G, 9, 4) corrector gain for y = [delta, r, phi_dot, a_y]
+    kf_Phi: np.ndarray  # (G, 11, 11) exact ZOH of the torque- and gyro-bias-augmented model
+    kf_K: np.ndarray  # (G, 11, 4) corrector gain for y = [delta, r, phi_dot, a_y]
     kf_C: np.ndarray  # (4, 9)
 
     def save(self, path: str | Path) -> None:

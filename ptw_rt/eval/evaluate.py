@@ -96,7 +96,7 @@ def evaluate_ride(ride: Ride, config: Path = DEFAULT_CONFIG, design_file: Path |
 
     # baselines on the same conditioned signals
     kin = np.arctan(E[:, L.E_SPEED] * E[:, L.E_YAW_RATE] / g)
-    comp = _complementary(E[:, L.E_ROLL_RATE], kin, dt, settings.estimator.roll_fusion_time_constant)
+    comp = _complementary(E[:, L.E_ROLL_RATE_MEASURED], kin, dt, settings.estimator.roll_fusion_time_constant)
     geom = fo.lateral_yaw_constants(settings.vehicle)
     u, r, a_y = E[:, L.E_SPEED], E[:, L.E_YAW_RATE], E[:, L.E_LAT_ACCEL]
     smo = fo.run_smo(u, r, a_y, dt, geom)
@@ -171,14 +171,14 @@ def _stiffness_baselines(vehicle, dt, E, truth, use) -> dict:
     except ImportError:  # pragma: no cover - module ships with the package
         return {}
     true4 = [float(np.mean(truth[c][use])) if use.any() else float("nan") for _, _, c in STIFFNESS_ORDER]
-    y = np.column_stack([E[:, L.E_STEER], E[:, L.E_YAW_RATE], E[:, L.E_ROLL_RATE], E[:, L.E_STEER_RATE]])
+    y = np.column_stack([E[:, L.E_STEER], E[:, L.E_YAW_RATE], E[:, L.E_ROLL_RATE_MEASURED], E[:, L.E_STEER_RATE]])
     x_hat = np.column_stack(
         [
             E[:, L.E_ROLL],
             E[:, L.E_STEER],
             E[:, L.E_LAT_VEL],
             E[:, L.E_YAW_RATE],
-            E[:, L.E_ROLL_RATE],
+            E[:, L.E_ROLL_RATE_MEASURED],
             E[:, L.E_STEER_RATE],
             E[:, L.E_FY_FRONT],
             E[:, L.E_FY_REAR],
