@@ -325,6 +325,16 @@ class FrameCodec:
         sig = self._info(message_name).message.get_signal_by_name(signal_name)
         return {int(k): str(v) for k, v in (sig.choices or {}).items()}
 
+    def plain_layout(self, message_name: str) -> tuple[tuple, ...] | None:
+        """``(signal, start bit, length, signed, scale, offset, min, max)`` per signal in DBC order when every
+        signal is a plain Intel integer (``decode`` then computes ``raw * scale + offset`` with these exact
+        floats), else None. For callers that unpack hot frames themselves (``InputTracker``)."""
+        info = self._info(message_name)
+        if info.bits is None:
+            return None
+        lim = info.limits_by_name
+        return tuple((*b, *lim[b[0]]) for b in info.bits)
+
     def out_of_range(self, message_name: str, values: Mapping[str, float]) -> tuple[str, ...]:
         """Names of signals in ``values`` outside their DBC [min, max] (or not finite)."""
         lim = self._info(message_name).limits_by_name

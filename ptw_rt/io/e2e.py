@@ -26,6 +26,8 @@ __all__ = [
     "crc8_sae_j1850",
     "next_counter",
     "profile11_crc",
+    "profile11_crc_seeded",
+    "profile11_seed",
     "protect_p11",
 ]
 
@@ -66,17 +68,30 @@ def crc8_sae_j1850(data: bytes, start: int = 0xFF, xor_out: bool = True) -> int:
     return crc ^ 0xFF if xor_out else crc
 
 
+def profile11_seed(data_id: int) -> int:
+    """The Profile 11 CRC register after the Data ID (low byte, then high byte), before any frame byte.
+
+    A sender of a fixed message computes it once and passes it to ``profile11_crc_seeded`` per frame.
+    """
+    crc = _TABLE[data_id & 0xFF]  # start value 0x00: first step is table[0 ^ b]
+    return _TABLE[crc ^ ((data_id >> 8) & 0xFF)]
+
+
+def profile11_crc_seeded(seed: int, frame: bytes) -> int:
+    """Profile 11 CRC of ``frame[1:]`` continuing from ``seed = profile11_seed(data_id)``."""
+    table = _TABLE
+    crc = seed
+    for b in frame[1:]:
+        crc = table[crc ^ b]
+    return crc
+
+
 def profile11_crc(data_id: int, frame: bytes) -> int:
     """Profile 11 CRC (Data ID mode BOTH) of ``frame``: over Data ID low byte, high byte, then ``frame[1:]``.
 
     Byte 0 of ``frame`` (the CRC itself) is not included.
     """
-    table = _TABLE
-    crc = table[data_id & 0xFF]  # start value 0x00: first step is table[0 ^ b]
-    crc = table[crc ^ ((data_id >> 8) & 0xFF)]
-    for b in frame[1:]:
-        crc = table[crc ^ b]
-    return crc
+    return profile11_crc_seeded(profile11_seed(data_id), frame)
 
 
 def protect_p11(data_id: int, data: bytearray, counter: int) -> None:

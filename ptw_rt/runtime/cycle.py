@@ -84,14 +84,16 @@ def drive_log(
     if pending is None:
         return 0
     t0 = pending[0] if start is None else start
+    on_frame = runner.on_frame  # bound once: this loop runs per frame
+    cycle = runner.cycle
     k = 1
     n = 0
     while pending is not None:
         now = t0 + k * dt
         while pending is not None and pending[0] <= now:
-            runner.on_frame(pending[0], pending[1], pending[2])
+            on_frame(pending[0], pending[1], pending[2])
             pending = next(it, None)
-        on_cycle(now, runner.cycle(now))
+        on_cycle(now, cycle(now))
         n += 1
         k += 1
     return n

@@ -55,7 +55,7 @@ from ptw_rt.core.layout import (
     V_STEER_RATE,
 )
 from ptw_rt.io.dbc import FrameCodec
-from ptw_rt.io.e2e import profile11_crc
+from ptw_rt.io.e2e import profile11_crc_seeded, profile11_seed
 
 __all__ = ["FAST_MESSAGES", "SLOW_MESSAGES", "OutputEncoder", "SIGNAL_MAP"]
 
@@ -86,6 +86,11 @@ SLOW_MESSAGES = ("EST_Status", "EST_TireStiffness")
 _STATUS_SIGNALS = ("Mode", "SensorTimeouts", "ReasonBits", "OverrunCount", "CycleTimeUs")
 
 
+def _neutral(lo: float, hi: float) -> float:
+    """What a NaN is sent as: 0 if the range holds it, else the range's lower end."""
+    return 0.0 if lo <= 0.0 <= hi else lo
+
+
 class _Packer:
     """Precomputed bit layout of one message, packing as FrameCodec.encode does (clip, round, E2E CRC).
 
@@ -114,11 +119,29 @@ class _Packer:
         )
         self.bit = {n: 1 << sigs[n].start for n in self.flag_names}
         self.counter_shift = sigs[self.counter_signal].start if self.counter_signal else 0
+        # the CRC register after the Data ID, the same for every frame of this message
+        self.crc_seed = None if self.crc_signal is None else profile11_seed(self.frame_id)
         limits = codec.signal_limits(message)
+        # (start, mask, scale, offset, min, max, value sent for NaN) per analog signal
         self.fields = tuple(
-            (sigs[n].start, (1 << sigs[n].length) - 1, float(sigs[n].scale), float(sigs[n].offset), *limits[n])
+            (
+                sigs[n].start,
+                (1 << sigs[n].length) - 1,
+                float(sigs[n].scale),
+                float(sigs[n].offset),
+                *limits[n],
+                _neutral(*limits[n]),
+            )
             for n in self.analog
         )
+
+    def finish(self, word: int) -> bytes:
+        """The frame's bytes from its packed integer (counter included), with the Profile 11 CRC in byte 0."""
+        data = word.to_bytes(self.length, "little")
+        if self.crc_seed is None:
+            return data
+        # byte 0 is replaced, as protect_p11 does on the frame
+        return ((word & ~0xFF) | profile11_crc_seeded(self.crc_seed, data)).to_bytes(self.length, "little")
 
     def pack(self, values: Sequence[float], flags: int, counter: int) -> bytes:
         if not self.fast:
@@ -126,25 +149,20 @@ class _Packer:
             signals.update({n: 1.0 if flags & b else 0.0 for n, b in self.bit.items()})
             return self.codec.encode(self.message, signals, counter=counter)[1]
         word = flags | (counter << self.counter_shift)
-        for v, (start, mask, scale, offset, lo, hi) in zip(values, self.fields, strict=True):
+        for v, (start, mask, scale, offset, lo, hi, neutral) in zip(values, self.fields, strict=True):
             if v < lo:
                 v = lo
             elif v > hi:
                 v = hi
             elif v != v:  # NaN (the caller has marked the signal invalid): send the neutral value
-                v = 0.0 if lo <= 0.0 <= hi else lo
+                v = neutral
             if v == 0.0 and offset == 0.0:
                 continue
-            # cantools' LinearIntegerConversion.numeric_scaled_to_raw, to be byte-identical with FrameCodec.encode
-            raw = v - offset
-            q, r = divmod(raw, scale)
-            raw = round(q if r == 0 else raw / scale)
+            # FrameCodec.encode's rounding (the same as cantools' numeric_scaled_to_raw: where that takes the
+            # divmod quotient, the remainder is 0, so the quotient is an integer and equals the division exactly)
+            raw = round((v - offset) / scale)
             word |= (raw & mask) << start
-        if self.crc_signal is None:
-            return word.to_bytes(self.length, "little")
-        buf = bytearray(word.to_bytes(self.length, "little"))
-        buf[0] = profile11_crc(self.frame_id, buf)
-        return bytes(buf)
+        return self.finish(word)
 
 
 class OutputEncoder:
@@ -158,7 +176,8 @@ class OutputEncoder:
         self.codec = codec
         self.sample_time = float(sample_time)
         self._packers: dict[str, _Packer] = {}
-        # message -> (packer, Estimates indices, ((V bit, shifted <signal>_Valid bit), ...), <msg>_Valid bit, group)
+        # message -> (packer, ((Estimates index, V bit, *packer field), ...), ((V bit, shifted <signal>_Valid bit),
+        # ...), <msg>_Valid bit, group, counter modulus): everything a frame needs, resolved once, not per frame
         self._plans: dict[str, tuple] = {}
         for name, slots in SIGNAL_MAP.items():
             p = _Packer(codec, name, [signal for signal, _, _ in slots])
@@ -171,8 +190,9 @@ class OutputEncoder:
                 for vname, vbit in _STIFFNESS_VALID:
                     vbits.append((vbit, p.bit[vname]))
                     group |= vbit
-            indices = tuple(e_index for _, e_index, _ in slots)
-            self._plans[name] = (p, indices, tuple(vbits), p.bit[f"{name}_Valid"], group)
+            fields = tuple((e_index, vbit, *f) for (_, e_index, vbit), f in zip(slots, p.fields, strict=True))
+            modulus = codec.counter_modulus(name)
+            self._plans[name] = (p, fields, tuple(vbits), p.bit[f"{name}_Valid"], group, modulus)
         self._status = _Packer(codec, "EST_Status", _STATUS_SIGNALS)
         self._packers["EST_Status"] = self._status
         self._modulus = {name: codec.counter_modulus(name) for name in self._packers}
@@ -189,12 +209,43 @@ class OutputEncoder:
         return c
 
     def _signal_frame(self, name: str, est: list[float], mode_ok: bool, valid: int) -> tuple[int, bytes]:
-        p, indices, vbits, msg_valid_bit, group = self._plans[name]
-        values = [est[i] for i in indices]
+        p, fields, vbits, msg_valid_bit, group, modulus = self._plans[name]
+        if not p.fast:
+            return self._signal_frame_codec(name, est, mode_ok, valid)
+        # the hot path: clip and pack each signal into one integer right here (what _Packer.pack does, without
+        # the intermediate list and calls)
+        word = 0
+        for index, vbit, start, mask, scale, offset, lo, hi, neutral in fields:
+            v = est[index]
+            if not lo <= v <= hi:  # rare: clip, or (NaN, inf) never a number on the wire: neutral value, invalid
+                if not math.isfinite(v):
+                    valid &= ~vbit
+                    v = neutral
+                elif v < lo:
+                    v = lo
+                else:
+                    v = hi
+            word |= (round((v - offset) / scale) & mask) << start  # rounding: see _Packer.pack
+        for vbit, bit in vbits:
+            if valid & vbit:
+                word |= bit
+        if mode_ok and valid & group:
+            word |= msg_valid_bit
+        # the message's rolling counter (as _next, inline)
+        counters = self.counters
+        c = counters[name]
+        counters[name] = c + 1 if c + 1 < modulus else 0
+        self.frames_sent[name] += 1
+        return p.frame_id, p.finish(word | (c << p.counter_shift))
+
+    def _signal_frame_codec(self, name: str, est: list[float], mode_ok: bool, valid: int) -> tuple[int, bytes]:
+        """``_signal_frame`` through ``_Packer.pack`` (a layout the fast packer does not cover)."""
+        p, fields, vbits, msg_valid_bit, group, _ = self._plans[name]
+        values = [est[f[0]] for f in fields]
         for k, v in enumerate(values):
             if not math.isfinite(v):  # never a number on the wire: neutral value, signal invalid
                 values[k] = math.nan
-                valid &= ~SIGNAL_MAP[name][k][2]
+                valid &= ~fields[k][1]
         flags = 0
         for vbit, bit in vbits:
             if valid & vbit:
