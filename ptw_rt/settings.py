@@ -93,6 +93,10 @@ SENSORS_SCHEMA = Section(
         "gps_latency": (Number("s", ge=0, le=1), 0.1),
         "speed_filter_gain": (Number("", gt=0, le=1), 0.3),
         "speed_bias_gain": (Number("", ge=0, le=1), 0.02),
+        # at standstill the true body rates are zero: what the gyros read is their bias
+        "gyro_calibration_speed": (Number("m/s", ge=0, le=2), 0.3),
+        "gyro_calibration_time_constant": (Number("s", gt=0), 5.0),
+        "gyro_calibration_max_rate": (Number("rad/s", gt=0), 0.05),
     },
 )
 

@@ -81,6 +81,33 @@ def test_standstill_says_so_and_holds_sane_outputs(estimator_factory):
     assert out[lay.E_RIDER_TORQUE] == 0.0
 
 
+def standing_sample(t: float, roll_bias: float, yaw_bias: float) -> np.ndarray:
+    """Upright at standstill: the gyros read only their biases."""
+    s = riding_sample(t, speed=0.0)
+    s[lay.S_ROLL_RATE_BODY] = roll_bias
+    s[lay.S_PITCH_RATE_BODY] = 0.0
+    s[lay.S_YAW_RATE_BODY] = yaw_bias
+    s[lay.S_ACCEL_Z] = -9.81
+    return s
+
+
+def test_standstill_calibrates_the_gyro_biases_and_riding_uses_them(estimator_factory):
+    est = estimator_factory()
+    out = lay.new_estimates()
+    for k in range(3000):  # 30 s at a stop: six calibration time constants
+        est.step(standing_sample(k * 0.01, roll_bias=0.004, yaw_bias=-0.003), out)
+    assert out[lay.E_ROLL_GYRO_BIAS] == pytest.approx(0.004, abs=2e-4)
+    assert out[lay.E_YAW_GYRO_BIAS] == pytest.approx(-0.003, abs=2e-4)
+    assert abs(out[lay.E_ROLL_RATE]) < 3e-4  # the published roll rate is bias-corrected
+    assert out[lay.E_ROLL_RATE_MEASURED] == pytest.approx(0.004)
+    # a rider rocking the scooter at the stop is motion, not bias: nothing learned from it
+    learned = out[lay.E_YAW_GYRO_BIAS]
+    for k in range(200):
+        s = standing_sample(30.0 + k * 0.01, roll_bias=0.3, yaw_bias=0.2)
+        est.step(s, out)
+    assert out[lay.E_YAW_GYRO_BIAS] == pytest.approx(learned, abs=1e-9)
+
+
 def test_silent_imu_is_a_fault_and_recovery_needs_no_restart(estimator_factory):
     est = estimator_factory()
     out = ride(est, 4.0)

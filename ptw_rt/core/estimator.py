@@ -144,6 +144,9 @@ P_YA_DELTA_DOT = 24
 P_DIFF_SUBSTEPS = 25
 P_PE_FORGETTING = 26
 # 27, 28: unused (kept so the indices below stay stable)
+P_CAL_SPEED = 27  # m/s: zero-rate gyro calibration below this speed
+P_CAL_GAIN = 28  # share of the (measured - bias) difference applied per cycle
+P_CAL_MAX_RATE = 40  # rad/s: above, the vehicle is moving (rocked) and not calibrated
 P_MAX_RATE = 29  # plausibility limits of raw inputs (beyond: treated as missing, flagged)
 P_MAX_ACCEL = 30
 P_MAX_GPS_SPEED = 31
@@ -152,7 +155,7 @@ P_STA_LC_R = 33  # super-twisting force observer (seed 003): bound on |d/dt (M_z
 P_STA_LC_W = 34  # and on |d a_y / dt| [m/s^3]
 P_GEOM = 35  # [M, I_z, a_f, a_r] of the CoM-referred lateral/yaw sub-model (4 entries)
 P_ADAPT_MAX_RESIDUAL = 39  # m/s^2: RMS a_y innovation above which adaptation is frozen
-PARAM_SIZE = 40
+PARAM_SIZE = 41
 
 # ---- supervisor / glue state (float64) ----
 G_INIT = 0  # 1 once the first usable sample has been seen
@@ -342,6 +345,19 @@ def estimator_step(
 
     # ---- 3.-5. observers, only where the model holds ----
     run_observers = core_ok and not speed_low
+    kf_state = glue[G_KF : G_KF + kf.STATE_SIZE]
+    if (
+        core_ok
+        and speed_known
+        and not gps_lost
+        and u < prm[P_CAL_SPEED]
+        and reasons_now & ~REASON_SPEED_LOW == 0
+        and abs(p_rate - kf_state[kf.ROLL_BIAS]) < prm[P_CAL_MAX_RATE]
+        and abs(r_ground - kf_state[kf.YAW_BIAS]) < prm[P_CAL_MAX_RATE]
+    ):
+        # standing still: the true rates are zero, the gyros read their bias (no a_y / yaw ambiguity here)
+        kf_state[kf.YAW_BIAS] += prm[P_CAL_GAIN] * (r_ground - kf_state[kf.YAW_BIAS])
+        kf_state[kf.ROLL_BIAS] += prm[P_CAL_GAIN] * (p_rate - kf_state[kf.ROLL_BIAS])
     if not run_observers:
         uh_state[uh.INIT] = 0.0
         ad_state[ad.INIT] = 0.0
@@ -416,7 +432,6 @@ def estimator_step(
 
     # 4. fusion filter: roll, torque and the lateral states from all four measurements
     kf_out = scratch[72:83]
-    kf_state = glue[G_KF : G_KF + kf.STATE_SIZE]
     roll_kin = kinematic_roll(u, r_ground, prm[P_G])
     if run_observers:
         y_kf = scratch[84:88]

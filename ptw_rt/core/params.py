@@ -63,6 +63,9 @@ def build_params(settings, design) -> np.ndarray:
     prm[est_layout.P_SPEED_BIAS_GAIN] = sens["speed_bias_gain"]
     prm[est_layout.P_LATENCY_SAMPLES] = round(sens["gps_latency"] / dt)
     prm[est_layout.P_FUSION_RATE] = 1.0 / est.roll_fusion_time_constant
+    prm[est_layout.P_CAL_SPEED] = sens["gyro_calibration_speed"]
+    prm[est_layout.P_CAL_GAIN] = 1.0 - math.exp(-dt / sens["gyro_calibration_time_constant"])
+    prm[est_layout.P_CAL_MAX_RATE] = sens["gyro_calibration_max_rate"]
     prm[est_layout.P_DERIV_OMEGA] = 2.0 * math.pi * est.derivative_filter_hz
     prm[est_layout.P_CONVERGE_TIME] = est.converge_time
     prm[est_layout.P_GPS_HOLD] = est.gps_hold_time
