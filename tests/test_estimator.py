@@ -217,12 +217,12 @@ def test_cache_warm_start_compiles_nothing(tmp_path):
         import json, time
         t0 = time.perf_counter()
         from ptw_rt.runtime.cycle import build_runner
-        from ptw_rt.core.estimator import estimator_step
+        from ptw_rt.core.estimator import packed_step  # the entry point called from Python
         r = build_runner("config/scooter.yaml")
         r.cycle(0.01)
         print(json.dumps({"first_cycle_s": time.perf_counter() - t0,
-                          "hits": sum(estimator_step.stats.cache_hits.values()),
-                          "misses": sum(estimator_step.stats.cache_misses.values())}))
+                          "hits": sum(packed_step.stats.cache_hits.values()),
+                          "misses": sum(packed_step.stats.cache_misses.values())}))
         """
     )
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
@@ -235,7 +235,7 @@ def test_cache_warm_start_compiles_nothing(tmp_path):
     cold, warm = runs
     assert cold["misses"] >= 1
     assert warm["misses"] == 0 and warm["hits"] >= 1
-    assert any(tmp_path.joinpath("numba").rglob("*estimator_step*.nbi"))
+    assert any(tmp_path.joinpath("numba").rglob("*packed_step*.nbi"))
 
 
 @pytest.mark.slow
