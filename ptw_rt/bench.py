@@ -173,6 +173,7 @@ def measure_loop(seconds: float, hogs: int = 0) -> dict:
     import can
 
     from ptw_rt.runtime.daemon import Daemon, load_daemon_settings
+    from ptw_rt.runtime.realtime import apply_realtime
 
     channel = f"ptw-rt-bench-{os.getpid()}-{hogs}"
     with tempfile.TemporaryDirectory() as tmp:
@@ -191,7 +192,7 @@ def measure_loop(seconds: float, hogs: int = 0) -> dict:
         stop = threading.Event()
 
         def play() -> None:
-            _measurement_thread_realtime()
+            apply_realtime(MEASUREMENT_PRIORITY, None, False)  # not permitted: a warning, figures include its delay
             bus = can.Bus(interface="virtual", channel=channel)
             t0 = time.monotonic() + 0.05
             base = frames[0][0]
@@ -207,7 +208,7 @@ def measure_loop(seconds: float, hogs: int = 0) -> dict:
             bus.shutdown()
 
         def listen() -> None:
-            _measurement_thread_realtime()
+            apply_realtime(MEASUREMENT_PRIORITY, None, False)  # not permitted: a warning, figures include its delay
             bus = can.Bus(interface="virtual", channel=channel)
             while not stop.is_set():
                 msg = bus.recv(timeout=0.1)
@@ -215,8 +216,8 @@ def measure_loop(seconds: float, hogs: int = 0) -> dict:
                     received.append(time.monotonic())
             bus.shutdown()
 
-        # the hogs are ordinary processes: explicitly SCHED_OTHER, or they would inherit this thread's SCHED_FIFO
-        # from an earlier measurement and starve everything
+        # the hogs are ordinary processes whatever this one runs at (started under chrt, they would inherit SCHED_FIFO
+        # and starve everything)
         procs = [subprocess.Popen([sys.executable, "-c", HOG], start_new_session=True) for _ in range(hogs)]
         try:
             threads = [threading.Thread(target=f, daemon=True) for f in (listen, play)]
@@ -224,8 +225,6 @@ def measure_loop(seconds: float, hogs: int = 0) -> dict:
                 th.start()
             daemon.run(seconds)
         finally:
-            fifo = _fifo_applied()
-            _restore_normal_scheduling()
             stop.set()
             for p in procs:
                 p.kill()
@@ -253,33 +252,12 @@ def measure_loop(seconds: float, hogs: int = 0) -> dict:
         "latency_us": pct(latency[10:]),
         "input_to_output_us": pct(in_out[10:]),
         "overruns": daemon.overruns,
-        "sched_fifo": fifo,
+        "sched_fifo": not daemon.realtime_warnings,  # only SCHED_FIFO was asked for
     }
 
 
 HOG = "import os\nos.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))\nwhile True: pass"
 MEASUREMENT_PRIORITY = 41  # the sensor player and the listener stand for other CAN nodes: not starved by the hogs
-
-
-def _measurement_thread_realtime() -> None:
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(MEASUREMENT_PRIORITY))
-    except (AttributeError, OSError):
-        pass  # not permitted: the figures then include the measuring threads' own scheduling delay
-
-
-def _restore_normal_scheduling() -> None:
-    try:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except (AttributeError, OSError):
-        pass
-
-
-def _fifo_applied() -> bool:
-    try:
-        return os.sched_getscheduler(0) == os.SCHED_FIFO
-    except (AttributeError, OSError):
-        return False
 
 
 def run_bench(args) -> int:

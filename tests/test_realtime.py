@@ -153,3 +153,25 @@ def test_schema_rejects_bad_values(doc, message):
     with pytest.raises(ConfigError) as info:
         REALTIME_SCHEMA.check("runtime.realtime", doc)
     assert str(info.value).startswith(message), str(info.value)
+
+
+def test_a_thread_that_ran_the_loop_at_sched_fifo_gets_its_policy_back():
+    """Processes started afterwards (the bench's CPU hogs) must not inherit the loop's SCHED_FIFO."""
+    import threading
+
+    result = {}
+
+    def worker():
+        saved = realtime.thread_scheduling()
+        result["warnings"] = apply_realtime(10, None, False)
+        result["during"] = os.sched_getscheduler(0)
+        realtime.restore_scheduling(saved)
+        result["after"] = os.sched_getscheduler(0)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    if result["warnings"]:
+        pytest.skip(f"SCHED_FIFO not permitted here: {result['warnings'][0]}")
+    assert result["during"] == os.SCHED_FIFO
+    assert result["after"] == os.SCHED_OTHER

@@ -54,7 +54,7 @@ from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.runtime.cycle import CycleRunner, build_runner
 from ptw_rt.runtime.logs import HealthSummary, RateLimitedLog, setup_logging
 from ptw_rt.runtime.outputs import OutputEncoder
-from ptw_rt.runtime.realtime import apply_realtime
+from ptw_rt.runtime.realtime import apply_realtime, restore_scheduling, thread_scheduling
 from ptw_rt.runtime.sdnotify import SystemdNotifier, WatchdogGate
 from ptw_rt.settings import Settings, load_settings
 
@@ -158,6 +158,7 @@ class Daemon:
         # and the demo. Must be quick and must not keep the array (it is reused).
         self.on_cycle = None
         self.state_note = "no state file configured"
+        self.realtime_warnings: list[str] = []  # what apply_realtime could not put in force at the last run()
         self._saver: threading.Thread | None = None
         self._warm_up()
         self._restore_state()
@@ -305,7 +306,11 @@ class Daemon:
     def run(self, duration: float | None = None) -> int:
         """Run until ``stop()`` (or ``duration`` seconds). Returns 0."""
         rt = self.settings.runtime["realtime"]
-        for w in apply_realtime(rt["priority"], list(rt["cpus"]) if rt["cpus"] else None, rt["lock_memory"]):
+        scheduling_before = thread_scheduling()
+        self.realtime_warnings = apply_realtime(
+            rt["priority"], list(rt["cpus"]) if rt["cpus"] else None, rt["lock_memory"]
+        )
+        for w in self.realtime_warnings:
             log.warning("real-time setting not applied: %s", w)
         if self.bus is None:
             self._try_open()
@@ -407,6 +412,7 @@ class Daemon:
                     self._save_in_background(now)
         finally:
             self._shutdown()
+            restore_scheduling(scheduling_before)
         return 0
 
     def _shutdown(self) -> None:

@@ -27,7 +27,7 @@ from typing import Any
 
 from ptw_rt.schema import ConfigError, Flag, Number, NumberList, Section
 
-__all__ = ["REALTIME_SCHEMA", "apply_realtime", "realtime_state"]
+__all__ = ["REALTIME_SCHEMA", "apply_realtime", "realtime_state", "restore_scheduling", "thread_scheduling"]
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +100,28 @@ def apply_realtime(priority: int | None, cpus: list[int] | None, lock_memory: bo
     if lock_memory:
         _collect(warnings, _guarded("mlockall", _lock_memory))
     return warnings
+
+
+def thread_scheduling() -> tuple[int, int] | None:
+    """(policy, priority) of the calling thread, to hand to ``restore_scheduling``; None where unsupported."""
+    try:
+        return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    except (AttributeError, OSError):
+        return None
+
+
+def restore_scheduling(saved: tuple[int, int] | None) -> None:
+    """Put the calling thread back to ``saved`` (from ``thread_scheduling``). Never raises.
+
+    A thread that ran the loop at SCHED_FIFO and goes on doing other work (the demo, the bench, tests)
+    must not keep the priority: processes it starts would inherit it and could starve the machine.
+    """
+    if saved is None:
+        return
+    try:
+        os.sched_setscheduler(0, saved[0], os.sched_param(saved[1]))
+    except (AttributeError, OSError) as exc:
+        log.warning("could not restore the thread's scheduling policy: %s", exc)
 
 
 def realtime_state() -> dict:
