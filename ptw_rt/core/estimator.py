@@ -195,6 +195,16 @@ def _raise(glue: np.ndarray, bits: int, hold: float) -> None:
 
 
 @njit(cache=True)
+def _held_reasons(glue: np.ndarray) -> int:
+    """REASON_* bits still held by `_raise` at the current time."""
+    bits = 0
+    for k in range(16):
+        if glue[G_REASON_UNTIL + k] > glue[G_TIME]:
+            bits |= 1 << k
+    return bits
+
+
+@njit(cache=True)
 def _derivative_filter(z: np.ndarray, k: int, y: float, omega: float, dt: float) -> float:
     """Critically damped 2nd-order tracking filter, exact ZOH; returns the filtered derivative of y."""
     a = omega * dt
@@ -446,10 +456,7 @@ def estimator_step(
                 acc += kf_C[3, c] * kf_state[c]
             y_kf[3] = acc
         # the gyro biases learn only from clean input: a held, stale or implausible value would be taken for bias
-        bias_trusted = accel_ok and reasons_now == 0
-        for k in range(16):
-            if glue[G_REASON_UNTIL + k] > glue[G_TIME]:
-                bias_trusted = False
+        bias_trusted = accel_ok and reasons_now == 0 and _held_reasons(glue) == 0
         yaw_bias, roll_bias = kf_state[kf.YAW_BIAS], kf_state[kf.ROLL_BIAS]
         kf.kalman_step(kf_state, kf_out, y_kf, u, math.tan(glue[G_ROLL]), grid, kf_Phi, kf_K, kf_C)
         if not bias_trusted:
@@ -576,12 +583,8 @@ def estimator_step(
     # ---- 6. supervisor ----
     _raise(glue, reasons_now, prm[P_REASON_HOLD])
     # conditions that are states, not events, end as soon as they end
-    reasons = reasons_now & (REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE)
-    for k in range(16):
-        if glue[G_REASON_UNTIL + k] > glue[G_TIME] and not (1 << k) & (
-            REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE
-        ):
-            reasons |= 1 << k
+    states = REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE
+    reasons = (reasons_now & states) | (_held_reasons(glue) & ~states)
 
     if not speed_known and core_ok:
         mode = MODE_INIT
@@ -682,7 +685,8 @@ def _v3(buf: np.ndarray, index: np.ndarray, k: int) -> np.ndarray:
     return buf[index[k, 0] : index[k, 1]].reshape((index[k, 2], index[k, 3], index[k, 4]))
 
 
-# order of the state and table buffers (and the dimension each view has)
+# order of the state and table buffers (and the dimension each view has); tables are named as in DesignData,
+# except the differentiator gains, which are constants of ptw_rt.core.uihosmo
 STATE_PARTS = ("glue", "spd", "uh_state", "ad_state", "scratch", "chi")
 TABLE_PARTS = (
     ("grid", 1),
@@ -704,10 +708,10 @@ TABLE_PARTS = (
     ("ad_C", 2),
     ("ad_T", 2),
     ("ad_gamma", 1),
-    ("theta_nominal", 1),
-    ("theta_bound", 1),
+    ("ad_theta_nominal", 1),
+    ("ad_theta_bound", 1),
     ("regressor_constants", 1),
-    ("pe_threshold", 1),
+    ("ad_pe_threshold", 1),
     ("kf_Phi", 3),
     ("kf_K", 3),
     ("kf_C", 2),
@@ -802,39 +806,12 @@ class Estimator:
         for k, name in enumerate(STATE_PARTS):
             a, b = self._state_index[k, 0], self._state_index[k, 1]
             setattr(self, name, self._state[a:b].reshape(parts[name].shape))
-        d = design
-        tables = {
-            "grid": d.grid,
-            "uh_Phi": d.uh_Phi,
-            "uh_Gamma": d.uh_Gamma,
-            "uh_T_inv": d.uh_T_inv,
-            "uh_Abar": d.uh_Abar,
-            "uh_Dbar_inv": d.uh_Dbar_inv,
-            "uh_Phi22": d.uh_Phi22,
-            "uh_Gamma21": d.uh_Gamma21,
-            "uh_Ramp_y": d.uh_Ramp_y,
-            "uh_Ramp21": d.uh_Ramp21,
-            "lam_steer": uh.LAMBDA_STEER,
-            "lam_yaw": uh.LAMBDA_YAW,
-            "ad_Phi": d.ad_Phi,
-            "ad_B_tau": d.ad_B_tau,
-            "ad_B_theta": d.ad_B_theta,
-            "ad_B_y": d.ad_B_y,
-            "ad_C": d.ad_C,
-            "ad_T": d.ad_T,
-            "ad_gamma": d.ad_gamma,
-            "theta_nominal": d.ad_theta_nominal,
-            "theta_bound": d.ad_theta_bound,
-            "regressor_constants": d.regressor_constants,
-            "pe_threshold": d.ad_pe_threshold,
-            "kf_Phi": d.kf_Phi,
-            "kf_K": d.kf_K,
-            "kf_C": d.kf_C,
-        }
-        for name, ndim in TABLE_PARTS:
-            if np.ndim(tables[name]) != ndim:
-                raise ValueError(f"design table {name} has {np.ndim(tables[name])} dimensions, expected {ndim}")
-        self._tables, self._table_index = _pack([np.asarray(tables[name]) for name, _ in TABLE_PARTS])
+        constants = {"lam_steer": uh.LAMBDA_STEER, "lam_yaw": uh.LAMBDA_YAW}
+        tables = [np.asarray(constants[n] if n in constants else getattr(design, n)) for n, _ in TABLE_PARTS]
+        for (name, ndim), table in zip(TABLE_PARTS, tables, strict=True):
+            if table.ndim != ndim:
+                raise ValueError(f"design table {name} has {table.ndim} dimensions, expected {ndim}")
+        self._tables, self._table_index = _pack(tables)
 
     def reset(self) -> None:
         """Forget everything but the learned stiffness."""
