@@ -17,6 +17,30 @@ from ptw_rt.model.parameters import VEHICLE_SCHEMA, VehicleParameters, vehicle_f
 from ptw_rt.runtime.config import RUNTIME_SCHEMA
 from ptw_rt.schema import ConfigError, Number, NumberList, Section, canonical_hash, read_yaml, validate
 
+# Kinematic attitude filter (ptw_rt/core/attitude.py): roll from gyros + accelerometer, no tyre model.
+ATTITUDE_SCHEMA = Section(
+    fields={},
+    optional={
+        "roll_noise": (Number("rad/sqrt(s)", gt=0), 1.0e-3),
+        "heading_noise": (Number("rad/sqrt(s)", gt=0), 2.0e-3),
+        "gyro_bias_rate": (Number("rad/s/sqrt(s)", gt=0), 3.0e-5),
+        "accel_bias_rate": (Number("m/s^2/sqrt(s)", gt=0), 2.0e-4),
+        "sideslip_accel_noise": (Number("m/s^2/sqrt(s)", gt=0), 2.0),
+        "sideslip_accel_time": (Number("s", gt=0), 0.5),
+        "sideslip_time": (Number("s", gt=0), 5.0),
+        "lateral_accel_noise": (Number("m/s^2", gt=0), 0.15),
+        "pitch_rate_noise": (Number("rad/s", gt=0), 0.01),
+        "course_noise_deg": (Number("deg", gt=0), 0.5),
+        "course_min_speed": (Number("m/s", gt=0), 3.0),
+        "innovation_gate": (Number("", gt=1), 5.0),
+        "standstill_rate_noise": (Number("rad/s", gt=0), 0.003),
+        "initial_roll_sd": (Number("rad", gt=0), 0.2),
+        "initial_gyro_bias_sd": (Number("rad/s", gt=0), 0.01),
+        "initial_accel_bias_sd": (Number("m/s^2", gt=0), 0.05),
+        "reopen_after_cycles": (Number("", integer=True, gt=0), 50),
+    },
+)
+
 ESTIMATOR_SCHEMA = Section(
     {
         "sample_time": Number("s", gt=0, le=0.1),
@@ -55,7 +79,7 @@ ESTIMATOR_SCHEMA = Section(
                 "yaw_rate_noise": Number("rad/s", gt=0),
                 "roll_rate_noise": Number("rad/s", gt=0),
                 "lateral_accel_noise": Number("m/s^2", gt=0),
-                "gyro_bias_rate": Number("rad/s/sqrt(s)", gt=0),
+                "roll_noise": Number("rad", gt=0),
             }
         ),
         "force_observer_yaw_bound": Number("rad/s^3", gt=0),
@@ -76,9 +100,14 @@ ESTIMATOR_SCHEMA = Section(
                 "max_gps_speed": Number("m/s", gt=0),
                 "stiffness_max_residual": Number("m/s^2", gt=0),
                 "adaptation_max_residual": Number("m/s^2", gt=0),
-            }
+            },
+            # the published roll's valid bit: 3 sigma of its own uncertainty within this. The attitude
+            # filter's covariance is conservative (a sustained sideslip acceleration is not separable from
+            # a roll offset by kinematics alone): measured RMS errors are 0.1-0.3 deg (docs/results.md)
+            optional={"roll_tolerance_deg": (Number("deg", gt=0, le=10), 3.0)},
         ),
-    }
+    },
+    optional={"attitude": (ATTITUDE_SCHEMA, ATTITUDE_SCHEMA.check("estimator.attitude", {}))},
 )
 
 # Calibration of the sensors as mounted on this vehicle: read by the estimator's
@@ -120,7 +149,30 @@ class KalmanTuning:
     yaw_rate_noise: float  # rad/s
     roll_rate_noise: float  # rad/s
     lateral_accel_noise: float  # m/s^2
-    gyro_bias_rate: float  # rad/s / sqrt(s): random walk of the yaw- and roll-gyro biases (estimated as states)
+    roll_noise: float  # rad: error of the kinematic attitude filter's roll, fused as a measurement
+
+
+@dataclass(frozen=True)
+class AttitudeTuning:
+    """Noise model of the kinematic attitude filter (ptw_rt.core.attitude); units in ATTITUDE_SCHEMA."""
+
+    roll_noise: float
+    heading_noise: float
+    gyro_bias_rate: float
+    accel_bias_rate: float
+    sideslip_accel_noise: float
+    sideslip_accel_time: float
+    sideslip_time: float
+    lateral_accel_noise: float
+    pitch_rate_noise: float
+    course_noise_deg: float
+    course_min_speed: float
+    innovation_gate: float
+    standstill_rate_noise: float
+    initial_roll_sd: float
+    initial_gyro_bias_sd: float
+    initial_accel_bias_sd: float
+    reopen_after_cycles: int
 
 
 @dataclass(frozen=True)
@@ -142,6 +194,7 @@ class EstimatorTuning:
     excitation_time_constant: float
     roll_fusion_time_constant: float
     kalman: KalmanTuning
+    attitude: AttitudeTuning
     force_observer_yaw_bound: float
     force_observer_lateral_bound: float
     derivative_filter_hz: float
@@ -158,6 +211,7 @@ class EstimatorTuning:
     max_gps_speed: float
     stiffness_max_residual: float
     adaptation_max_residual: float
+    roll_tolerance_deg: float
 
     def speed_grid_ms(self) -> np.ndarray:
         """Design grid in m/s; the end points are always included."""
@@ -205,6 +259,7 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         excitation_time_constant=ad["excitation_time_constant"],
         roll_fusion_time_constant=est["roll_fusion_time_constant"],
         kalman=KalmanTuning(**est["fusion_filter"]),
+        attitude=AttitudeTuning(**est["attitude"]),
         force_observer_yaw_bound=est["force_observer_yaw_bound"],
         force_observer_lateral_bound=est["force_observer_lateral_bound"],
         derivative_filter_hz=est["derivative_filter_hz"],

@@ -42,6 +42,7 @@ def riding_sample(t: float, speed: float = 20.0, gps: bool = True) -> np.ndarray
     s[lay.S_STEER_COUNT] = 512.0
     s[lay.S_GPS_SPEED] = speed
     s[lay.S_GPS_FIX] = 3.0
+    s[lay.S_GPS_COURSE] = math.degrees(r * max(t - 0.1, 0.0)) % 360.0  # the heading 0.1 s ago (GPS latency)
     fresh = lay.MSG_IMU_RATES | lay.MSG_IMU_ACCEL | lay.MSG_STEER
     if gps and round(t * 100) % 10 == 0:
         fresh |= lay.MSG_GPS
@@ -105,7 +106,8 @@ def test_standstill_calibrates_the_gyro_biases_and_riding_uses_them(estimator_fa
     for k in range(200):
         s = standing_sample(30.0 + k * 0.01, roll_bias=0.3, yaw_bias=0.2)
         est.step(s, out)
-    assert out[lay.E_YAW_GYRO_BIAS] == pytest.approx(learned, abs=1e-9)
+    # (the attitude filter's other constraints still move it by a few 1e-5 rad/s)
+    assert out[lay.E_YAW_GYRO_BIAS] == pytest.approx(learned, abs=1e-4)
 
 
 def test_silent_imu_is_a_fault_and_recovery_needs_no_restart(estimator_factory):

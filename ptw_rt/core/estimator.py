@@ -32,6 +32,7 @@ import numpy as np
 from numba import njit
 
 from ptw_rt.core import adaptive as ad
+from ptw_rt.core import attitude as att
 from ptw_rt.core import kalman as kf
 from ptw_rt.core import uihosmo as uh
 from ptw_rt.core.adaptive import adaptive_step
@@ -57,16 +58,20 @@ from ptw_rt.core.layout import (
     E_FY_REAR_ADAPTIVE,
     E_FY_REAR_STA,
     E_LAT_ACCEL,
+    E_LAT_ACCEL_BIAS,
     E_LAT_VEL,
     E_LAT_VEL_ADAPTIVE,
     E_MODE,
+    E_PITCH_GYRO_BIAS,
     E_REASONS,
     E_RIDER_TORQUE,
     E_ROLL,
     E_ROLL_ADAPTIVE,
+    E_ROLL_FUSION,
     E_ROLL_GYRO_BIAS,
     E_ROLL_RATE,
     E_ROLL_RATE_MEASURED,
+    E_ROLL_SD,
     E_ROLL_UIHOSMO,
     E_SPEED,
     E_STEER,
@@ -95,6 +100,7 @@ from ptw_rt.core.layout import (
     S_ACCEL_Y,
     S_ACCEL_Z,
     S_FRESH,
+    S_GPS_COURSE,
     S_GPS_FIX,
     S_GPS_SPEED,
     S_INPUT_REASONS,
@@ -155,7 +161,8 @@ P_STA_LC_R = 33  # super-twisting force observer (seed 003): bound on |d/dt (M_z
 P_STA_LC_W = 34  # and on |d a_y / dt| [m/s^3]
 P_GEOM = 35  # [M, I_z, a_f, a_r] of the CoM-referred lateral/yaw sub-model (4 entries)
 P_ADAPT_MAX_RESIDUAL = 39  # m/s^2: RMS a_y innovation above which adaptation is frozen
-PARAM_SIZE = 41
+P_ROLL_TOLERANCE = 41  # rad: the published roll is valid while 3 sigma of it is within this
+PARAM_SIZE = 42
 
 # ---- supervisor / glue state (float64) ----
 G_INIT = 0  # 1 once the first usable sample has been seen
@@ -177,7 +184,7 @@ G_KF = G_STA + STA_STATE_SIZE  # fusion filter state (kf.STATE_SIZE)
 GLUE_SIZE = G_KF + kf.STATE_SIZE
 N_RAW = 8
 
-SCRATCH_SIZE = 96
+SCRATCH_SIZE = 112
 
 
 @njit(cache=True)
@@ -214,6 +221,11 @@ def _derivative_filter(z: np.ndarray, k: int, y: float, omega: float, dt: float)
     z[k] = y + e * ((1.0 + a) * x0 + dt * x1)
     z[k + 1] = e * (-omega * omega * dt * x0 + (1.0 - a) * x1)
     return z[k + 1]
+
+
+@njit(cache=True)
+def _wrap_pi(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @njit(cache=True)
@@ -261,6 +273,8 @@ def estimator_step(
     kf_Phi: np.ndarray,
     kf_K: np.ndarray,
     kf_C: np.ndarray,
+    att_state: np.ndarray,
+    att_prm: np.ndarray,
 ) -> None:
     dt = prm[P_DT]
     glue[G_TIME] += dt
@@ -336,11 +350,49 @@ def estimator_step(
         int(prm[P_LATENCY_SAMPLES]),
     )
     speed_known = spd[3] != 0.0  # the filter has had its first fix
-    roll_prev = glue[G_ROLL]
-    p_rate = raw[0]
-    r_ground = ground_yaw_rate(raw[1], raw[2], roll_prev)
+    rates_ok = (stale & MSG_IMU_RATES) == 0
+
+    # attitude (ptw_rt.core.attitude): roll and gyro biases from kinematics alone, no tyre model
+    att_out = scratch[96 : 96 + att.OUT_SIZE]
+    standstill = (
+        speed_known
+        and not gps_lost
+        and u < prm[P_CAL_SPEED]
+        and reasons_now & ~REASON_SPEED_LOW == 0
+        and abs(raw[0] - att_state[att.ST_X + att.X_BP]) < prm[P_CAL_MAX_RATE]
+        and abs(raw[2] - att_state[att.ST_X + att.X_BR]) < prm[P_CAL_MAX_RATE]
+    )
+    course_new = gps_ok and sample[S_GPS_FIX] >= 2.0 and math.isfinite(sample[S_GPS_COURSE])
+    course = math.radians(sample[S_GPS_COURSE]) if course_new else 0.0
+    speed_sd = 0.1 + 0.5 * min(glue[G_GPS_AGE], 10.0)  # the speed filter dead-reckons on the accelerometer
+    att.attitude_step(
+        att_state,
+        att_out,
+        att_prm,
+        raw[0],
+        raw[1],
+        raw[2],
+        raw[4],
+        raw[5],
+        u if speed_known else 0.0,
+        speed_sd if speed_known else 30.0,
+        rates_ok,
+        accel_ok,
+        _wrap_pi(course),
+        course_new,
+        standstill,
+    )
+    attitude_ok = att_state[att.ST_INIT] == 1.0 and _all_finite(att_out, att.OUT_SIZE)
+    if attitude_ok:
+        roll_prev = att_out[att.OUT_ROLL]
+        p_rate = att_out[att.OUT_ROLL_RATE]
+        r_ground = att_out[att.OUT_YAW_RATE]
+    else:
+        roll_prev = glue[G_ROLL]
+        p_rate = raw[0]
+        r_ground = ground_yaw_rate(raw[1], raw[2], roll_prev)
     delta = steer_angle(raw[6], prm[P_STEER_ZERO], prm[P_STEER_CPR])
-    a_y_imu = horizontal_lateral_accel(raw[4], raw[5], roll_prev)
+    a_y_imu = horizontal_lateral_accel(raw[4] - att_out[att.OUT_BAY], raw[5], roll_prev)
     if glue[G_INIT] == 0.0:
         glue[G_DF + 0] = r_ground
         glue[G_DF + 2] = p_rate
@@ -356,18 +408,6 @@ def estimator_step(
     # ---- 3.-5. observers, only where the model holds ----
     run_observers = core_ok and not speed_low
     kf_state = glue[G_KF : G_KF + kf.STATE_SIZE]
-    if (
-        core_ok
-        and speed_known
-        and not gps_lost
-        and u < prm[P_CAL_SPEED]
-        and reasons_now & ~REASON_SPEED_LOW == 0
-        and abs(p_rate - kf_state[kf.ROLL_BIAS]) < prm[P_CAL_MAX_RATE]
-        and abs(r_ground - kf_state[kf.YAW_BIAS]) < prm[P_CAL_MAX_RATE]
-    ):
-        # standing still: the true rates are zero, the gyros read their bias (no a_y / yaw ambiguity here)
-        kf_state[kf.YAW_BIAS] += prm[P_CAL_GAIN] * (r_ground - kf_state[kf.YAW_BIAS])
-        kf_state[kf.ROLL_BIAS] += prm[P_CAL_GAIN] * (p_rate - kf_state[kf.ROLL_BIAS])
     if not run_observers:
         uh_state[uh.INIT] = 0.0
         ad_state[ad.INIT] = 0.0
@@ -441,10 +481,10 @@ def estimator_step(
             sta[k] = 0.0
 
     # 4. fusion filter: roll, torque and the lateral states from all four measurements
-    kf_out = scratch[72:83]
+    kf_out = scratch[72:81]
     roll_kin = kinematic_roll(u, r_ground, prm[P_G])
     if run_observers:
-        y_kf = scratch[84:88]
+        y_kf = scratch[84:89]
         y_kf[0] = delta
         y_kf[1] = r_ground
         y_kf[2] = p_rate
@@ -455,21 +495,21 @@ def estimator_step(
             for c in range(kf.N_Z):
                 acc += kf_C[3, c] * kf_state[c]
             y_kf[3] = acc
-        # the gyro biases learn only from clean input: a held, stale or implausible value would be taken for bias
-        bias_trusted = accel_ok and reasons_now == 0 and _held_reasons(glue) == 0
-        yaw_bias, roll_bias = kf_state[kf.YAW_BIAS], kf_state[kf.ROLL_BIAS]
-        kf.kalman_step(kf_state, kf_out, y_kf, u, math.tan(glue[G_ROLL]), grid, kf_Phi, kf_K, kf_C)
-        if not bias_trusted:
-            kf_state[kf.YAW_BIAS] = yaw_bias
-            kf_state[kf.ROLL_BIAS] = roll_bias
+        # the kinematic roll as a measurement (the model's roll variable is tan(phi), see below)
+        if attitude_ok:
+            y_kf[4] = math.tan(roll_prev)
+        else:  # no kinematic roll: no innovation from it
+            acc = 0.0
+            for c in range(kf.N_Z):
+                acc += kf_C[4, c] * kf_state[c]
+            y_kf[4] = acc
+        kf.kalman_step(kf_state, kf_out, y_kf, u, math.tan(roll_prev), grid, kf_Phi, kf_K, kf_C)
         if (
             not _all_finite(kf_out, kf.N_Z)
             or abs(kf_out[kf.PHI]) > math.tan(prm[P_MAX_ROLL])
             or abs(kf_out[kf.TAU]) > prm[P_MAX_TORQUE]
         ):
             kf_state[kf.INIT] = 0.0
-            kf_state[kf.YAW_BIAS] = 0.0  # a diverged filter's bias estimates are not trusted either
-            kf_state[kf.ROLL_BIAS] = 0.0
             _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
             for k in range(kf.N_Z):
                 kf_out[k] = 0.0
@@ -482,13 +522,16 @@ def estimator_step(
         for k in range(kf.N_Z):
             kf_out[k] = 0.0
 
-    # roll: the linear model's roll variable is tan(phi) of the real vehicle (g tan(phi) = u r in a steady
-    # turn, where the model has g phi = u r): atan maps it back. Below validity, gyro + kinematic roll.
+    # roll: the attitude filter's, at every speed (kinematics do not depend on the tyres; the fusion filter
+    # fuses it, and its own roll, atan of the linear model's tan(phi) variable, is a diagnostic). Without
+    # the attitude filter (IMU missing at start), the gyro integrated and pulled to the kinematic roll.
+    roll_fusion = math.atan(kf_out[kf.PHI]) if run_observers else 0.0
     if run_observers:
-        roll = math.atan(kf_out[kf.PHI])
         tau = kf_out[kf.TAU]
+    if attitude_ok:
+        roll = roll_prev
     else:
-        roll = glue[G_ROLL] + dt * (p_rate - kf_state[kf.ROLL_BIAS])
+        roll = glue[G_ROLL] + dt * p_rate
         pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)
         roll += pull * (roll_kin - roll)
     if not math.isfinite(roll) or abs(roll) > prm[P_MAX_ROLL]:
@@ -511,8 +554,8 @@ def estimator_step(
         )
         y = scratch[17:23]
         y[0] = delta
-        y[1] = r_ground - kf_out[kf.YAW_BIAS]  # gyro biases from the fusion filter
-        y[2] = p_rate - kf_out[kf.ROLL_BIAS]
+        y[1] = r_ground  # bias-corrected by the attitude filter
+        y[2] = p_rate
         y[3] = delta_dot
         y[4] = a_y
         y[5] = y_a
@@ -602,9 +645,13 @@ def estimator_step(
     valid = 0
     if core_ok:
         valid |= V_ROLL_RATE | V_STEER
+    # roll is valid from its own uncertainty: 3 sigma within the documented tolerance, filter consistent
+    roll_sd = att_out[att.OUT_ROLL_SD] if attitude_ok else math.inf
+    if rates_ok and accel_ok and 3.0 * roll_sd <= prm[P_ROLL_TOLERANCE] and att_state[att.ST_REJECTED] < 10.0:
+        valid |= V_ROLL
     observers_settled = run_observers and glue[G_RUN_TIME] >= prm[P_CONVERGE_TIME]
     if observers_settled:
-        valid |= V_ROLL | V_RIDER_TORQUE | V_STEER_RATE
+        valid |= V_RIDER_TORQUE | V_STEER_RATE
         valid |= V_LAT_VEL
         if accel_ok:
             valid |= V_FY_FRONT | V_FY_REAR
@@ -626,7 +673,7 @@ def estimator_step(
     # ---- outputs ----
     x_ad = ad_state[ad.X0 : ad.X1]
     est[E_ROLL] = roll
-    est[E_ROLL_RATE] = p_rate - kf_state[kf.ROLL_BIAS]
+    est[E_ROLL_RATE] = p_rate
     est[E_RIDER_TORQUE] = tau
     est[E_STEER] = kf_out[kf.DELTA] if run_observers else delta
     est[E_STEER_RATE] = kf_out[kf.DELTA_DOT] if run_observers else 0.0
@@ -639,10 +686,14 @@ def estimator_step(
     est[E_C_ALPHA_REAR] = theta_nominal[2] + theta[2]
     est[E_C_GAMMA_REAR] = theta_nominal[3] + theta[3]
     est[E_SPEED] = u
-    est[E_YAW_RATE] = r_ground
-    est[E_ROLL_RATE_MEASURED] = p_rate
-    est[E_YAW_GYRO_BIAS] = kf_state[kf.YAW_BIAS]
-    est[E_ROLL_GYRO_BIAS] = kf_state[kf.ROLL_BIAS]
+    est[E_YAW_RATE] = ground_yaw_rate(raw[1], raw[2], roll)  # as measured: the baselines' input
+    est[E_ROLL_RATE_MEASURED] = raw[0]
+    est[E_YAW_GYRO_BIAS] = att_out[att.OUT_BR]
+    est[E_ROLL_GYRO_BIAS] = att_out[att.OUT_BP]
+    est[E_PITCH_GYRO_BIAS] = att_out[att.OUT_BQ]
+    est[E_LAT_ACCEL_BIAS] = att_out[att.OUT_BAY]
+    est[E_ROLL_SD] = roll_sd if math.isfinite(roll_sd) else 10.0
+    est[E_ROLL_FUSION] = roll_fusion
     est[E_MODE] = mode
     est[E_REASONS] = reasons
     est[E_VALID] = valid
@@ -687,7 +738,7 @@ def _v3(buf: np.ndarray, index: np.ndarray, k: int) -> np.ndarray:
 
 # order of the state and table buffers (and the dimension each view has); tables are named as in DesignData,
 # except the differentiator gains, which are constants of ptw_rt.core.uihosmo
-STATE_PARTS = ("glue", "spd", "uh_state", "ad_state", "scratch", "chi")
+STATE_PARTS = ("glue", "spd", "uh_state", "ad_state", "scratch", "chi", "att_state")
 TABLE_PARTS = (
     ("grid", 1),
     ("uh_Phi", 3),
@@ -715,6 +766,7 @@ TABLE_PARTS = (
     ("kf_Phi", 3),
     ("kf_K", 3),
     ("kf_C", 2),
+    ("att_prm", 1),
 )
 
 
@@ -766,6 +818,8 @@ def packed_step(
         _v3(t, ti, 23),
         _v3(t, ti, 24),
         _v2(t, ti, 25),
+        _v1(s, si, 6),
+        _v1(t, ti, 26),
     )
 
 
@@ -800,13 +854,26 @@ class Estimator:
             "ad_state": ad.new_state(),
             "scratch": np.zeros(SCRATCH_SIZE),
             "chi": np.zeros((2, 4)),
+            "att_state": att.new_state(),
         }
         self._state, self._state_index = _pack([parts[name] for name in STATE_PARTS])
         # the named attributes are views into the flat state buffer: writes through them reach the step
         for k, name in enumerate(STATE_PARTS):
             a, b = self._state_index[k, 0], self._state_index[k, 1]
             setattr(self, name, self._state[a:b].reshape(parts[name].shape))
-        constants = {"lam_steer": uh.LAMBDA_STEER, "lam_yaw": uh.LAMBDA_YAW}
+        sens = settings.sensors
+        constants = {
+            "lam_steer": uh.LAMBDA_STEER,
+            "lam_yaw": uh.LAMBDA_YAW,
+            "att_prm": att.attitude_params(
+                self.sample_time,
+                settings.vehicle.g,
+                sens["imu_height"],
+                sens["imu_forward"],
+                settings.estimator.attitude,
+                sens["gps_latency"],
+            ),
+        }
         tables = [np.asarray(constants[n] if n in constants else getattr(design, n)) for n, _ in TABLE_PARTS]
         for (name, ndim), table in zip(TABLE_PARTS, tables, strict=True):
             if table.ndim != ndim:
@@ -819,6 +886,7 @@ class Estimator:
         restored = self.glue[G_RESTORED]
         for a in (self.glue, self.spd, self.uh_state, self.ad_state, self.scratch):
             a[:] = 0.0
+        att.restart(self.att_state)  # roll and heading again from the data; the sensor biases are kept
         self.ad_state[ad.TH0 : ad.TH1] = theta
         self.glue[G_THETA_GOOD : G_THETA_GOOD + 4] = theta
         self.glue[G_RESTORED] = restored

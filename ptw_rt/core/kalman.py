@@ -1,11 +1,10 @@
 """Fusion filter step (steady-state Kalman on the torque-augmented Sharp model; design in ptw_rt.design.kalman).
 
-    z+ = z + K(u) (y - C z)      corrector: y = [delta, r, phi_dot, a_y]
+    z+ = z + K(u) (y - C z)      corrector: y = [delta, r, phi_dot, a_y, phi_kinematic]
     z  = Phi(u) z+               predictor: exact ZOH, rider torque held (random walk)
 
-State layout (float64, `new_state`): [0:11] z = [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau,
-b_r, b_p] (the last two: yaw- and roll-gyro biases), [11] initialised.
-A (re)start keeps the gyro biases: they are a property of the sensor, not of the ride, and take minutes to learn.
+State layout (float64, `new_state`): [0:9] z = [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau],
+[9] initialised. The rates come bias-corrected (the attitude filter owns the gyro biases).
 The corrected z+ is written to `out` (the estimate of this cycle).
 """
 
@@ -16,12 +15,11 @@ from numba import njit
 
 from ptw_rt.core.schedule import grid_position, lerp
 
-N_Z = 11
-N_Y = 4
-PHI, DELTA, VY, R, PHI_DOT, DELTA_DOT, FYF, FYR, TAU, YAW_BIAS, ROLL_BIAS = range(11)
-N_DYNAMIC = 9  # states reset on a (re)start; the biases are kept
-INIT = 11
-STATE_SIZE = 12
+N_Z = 9
+N_Y = 5
+PHI, DELTA, VY, R, PHI_DOT, DELTA_DOT, FYF, FYR, TAU = range(9)
+INIT = 9
+STATE_SIZE = 10
 
 
 def new_state() -> np.ndarray:
@@ -40,16 +38,16 @@ def kalman_step(
     K: np.ndarray,
     C: np.ndarray,
 ) -> None:
-    """One cycle; `out` (>= 11 floats) receives the corrected state. `roll_init` seeds phi on (re)start."""
+    """One cycle; `out` (>= N_Z floats) receives the corrected state. `roll_init` seeds phi on (re)start."""
     i, w = grid_position(grid, u)
     z = state[0:N_Z]
     if state[INIT] == 0.0:
-        for a in range(N_DYNAMIC):
+        for a in range(N_Z):
             z[a] = 0.0
         z[PHI] = roll_init
         z[DELTA] = y[0]
-        z[R] = y[1] - z[YAW_BIAS]
-        z[PHI_DOT] = y[2] - z[ROLL_BIAS]
+        z[R] = y[1]
+        z[PHI_DOT] = y[2]
         state[INIT] = 1.0
     for a in range(N_Z):
         out[a] = z[a]

@@ -24,7 +24,8 @@ S_GPS_FIX = 9  # 0 none, 1 dead reckoning, 2 2D, 3 3D
 S_FRESH = 10  # MSG_* bits: a frame of that message arrived since the previous cycle
 S_STALE = 11  # MSG_* bits: no valid frame of that message within its timeout
 S_INPUT_REASONS = 12  # REASON_* bits raised by the I/O edge (decode errors, range, counters, overrun, send)
-SAMPLE_SIZE = 13
+S_GPS_COURSE = 13  # deg, course over ground (0..360, clockwise from north)
+SAMPLE_SIZE = 14
 
 # input messages, bit order of EST_Status.SensorTimeouts
 MSG_IMU_RATES = 1
@@ -100,7 +101,11 @@ E_FY_REAR_STA = 27
 E_ROLL_RATE_MEASURED = 28  # rad/s, the conditioned roll-rate gyro before bias correction (what baselines use)
 E_YAW_GYRO_BIAS = 29  # rad/s, the fusion filter's estimate of the yaw-gyro bias (diagnostic)
 E_ROLL_GYRO_BIAS = 30  # rad/s, ... of the roll-gyro bias
-ESTIMATES_SIZE = 31
+E_ROLL_SD = 31  # rad, standard deviation of the published roll (the attitude filter's covariance)
+E_ROLL_FUSION = 32  # rad, the Sharp-model fusion filter's roll after it fused the kinematic roll (diagnostic)
+E_PITCH_GYRO_BIAS = 33  # rad/s, the attitude filter's pitch-gyro bias estimate
+E_LAT_ACCEL_BIAS = 34  # m/s^2, the attitude filter's lateral-accelerometer bias estimate
+ESTIMATES_SIZE = 35
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -146,6 +151,10 @@ ESTIMATE_NAMES = (
     "roll_rate_measured",
     "yaw_gyro_bias",
     "roll_gyro_bias",
+    "roll_sd",
+    "roll_fusion",
+    "pitch_gyro_bias",
+    "lat_accel_bias",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

@@ -87,6 +87,7 @@ def build_params(settings, design) -> np.ndarray:
     prm[est_layout.P_MAX_GPS_SPEED] = est.max_gps_speed
     prm[est_layout.P_STIFF_MAX_RESIDUAL] = est.stiffness_max_residual
     prm[est_layout.P_ADAPT_MAX_RESIDUAL] = est.adaptation_max_residual
+    prm[est_layout.P_ROLL_TOLERANCE] = math.radians(est.roll_tolerance_deg)
     prm[est_layout.P_STA_LC_R] = est.force_observer_yaw_bound
     prm[est_layout.P_STA_LC_W] = est.force_observer_lateral_bound
     prm[est_layout.P_GEOM : est_layout.P_GEOM + 4] = lateral_yaw_constants(veh)

@@ -65,8 +65,8 @@ class DesignData:
     regressor_constants: np.ndarray  # (6,)
     # fusion filter (steady-state Kalman, state [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau])
     kf_Phi: np.ndarray  # (G, 11, 11) exact ZOH of the torque- and gyro-bias-augmented model
-    kf_K: np.ndarray  # (G, 11, 4) corrector gain for y = [delta, r, phi_dot, a_y]
-    kf_C: np.ndarray  # (4, 9)
+    kf_K: np.ndarray  # (G, 9, 5) corrector gain for y = [delta, r, phi_dot, a_y, phi]
+    kf_C: np.ndarray  # (5, 9)
 
     def save(self, path: str | Path) -> None:
         path = Path(path)

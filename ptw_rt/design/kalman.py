@@ -1,13 +1,14 @@
 """Offline design of the fusion filter: a steady-state Kalman filter on the Sharp model, per speed grid point.
 
-Augmented state z = [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau, b_r, b_p]: the rider
-torque is an unknown input modelled as a random walk (the classical disturbance-observer augmentation),
-so the filter reconstructs it from every measurement, not only from the steer angle; b_r and b_p are
-the yaw- and roll-gyro biases, also random walks. A yaw-rate bias b turns into a roll error of about
-u b / g (0.5 deg at 100 km/h for 0.003 rad/s): a_y and the model's lateral dynamics make it observable.
+Augmented state z = [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau]: the rider torque is an
+unknown input modelled as a random walk (the classical disturbance-observer augmentation), so the filter
+reconstructs it from every measurement, not only from the steer angle.
 
-Measurements y = [delta (10-bit encoder), r (de-rolled yaw gyro), phi_dot (roll gyro), a_y (lateral
-acceleration at the centre of mass)]. Why this filter exists next to the papers' observers: with a
+Measurements y = [delta (10-bit encoder), r (ground yaw rate), phi_dot (roll rate), a_y (lateral
+acceleration at the centre of mass), phi (roll of the kinematic attitude filter, ptw_rt.core.attitude)].
+The rates come bias-corrected by the attitude filter, which estimates the gyro biases from kinematics
+alone; its roll enters as a measurement, so where the tyre model is wrong the kinematics win, and the
+model adds what kinematics cannot give (torque, steer rate, lateral states, forces). Why this filter exists next to the papers' observers: with a
 10-bit encoder the steer angle of a 100 km/h lane change stays below one count, so the UIHOSMO's
 roll and torque, which come from the second and third derivatives of the steer error, are dominated
 by quantisation (docs/estimator.md). The gyro roll rate and the lateral acceleration carry the same
@@ -27,11 +28,9 @@ from ptw_rt.model.parameters import VehicleParameters
 from ptw_rt.model.sharp import state_space
 from ptw_rt.settings import KalmanTuning
 
-N_X = 11
-N_Y = 4
+N_X = 9
+N_Y = 5
 TAU = 8
-YAW_BIAS = 9
-ROLL_BIAS = 10
 # typical magnitudes of the states (the process noise of state i is process_noise * SCALE_i^2 per second)
 STATE_SCALE = np.array([0.1, 0.01, 0.3, 0.1, 0.3, 0.1, 500.0, 500.0])
 
@@ -39,9 +38,10 @@ STATE_SCALE = np.array([0.1, 0.01, 0.3, 0.1, 0.3, 0.1, 500.0, 500.0])
 def output_matrix(p: VehicleParameters) -> np.ndarray:
     C = np.zeros((N_Y, N_X))
     C[0, 1] = 1.0
-    C[1, 3] = C[1, YAW_BIAS] = 1.0
-    C[2, 4] = C[2, ROLL_BIAS] = 1.0
+    C[1, 3] = 1.0
+    C[2, 4] = 1.0
     C[3, 6] = C[3, 7] = 1.0 / p.mass
+    C[4, 0] = 1.0
     return C
 
 
@@ -55,13 +55,13 @@ def design_point(p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning
     Q = np.zeros((N_X, N_X))
     Q[:8, :8] = np.diag(tuning.process_noise * STATE_SCALE**2 * dt)
     Q[TAU, TAU] = tuning.rider_torque_rate**2 * dt
-    Q[YAW_BIAS, YAW_BIAS] = Q[ROLL_BIAS, ROLL_BIAS] = tuning.gyro_bias_rate**2 * dt
     R = np.diag(
         [
             tuning.steer_noise**2,
             tuning.yaw_rate_noise**2,
             tuning.roll_rate_noise**2,
             tuning.lateral_accel_noise**2,
+            tuning.roll_noise**2,
         ]
     )
     C = output_matrix(p)

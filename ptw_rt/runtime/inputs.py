@@ -28,6 +28,7 @@ from ptw_rt.core.layout import (
     S_ACCEL_Y,
     S_ACCEL_Z,
     S_FRESH,
+    S_GPS_COURSE,
     S_GPS_FIX,
     S_GPS_SPEED,
     S_INPUT_REASONS,
@@ -50,7 +51,7 @@ SIGNAL_SLOTS: dict[str, tuple[tuple[str, int], ...]] = {
     "IMU_Rates": (("RollRate", S_ROLL_RATE_BODY), ("PitchRate", S_PITCH_RATE_BODY), ("YawRate", S_YAW_RATE_BODY)),
     "IMU_Accel": (("AccelX", S_ACCEL_X), ("AccelY", S_ACCEL_Y), ("AccelZ", S_ACCEL_Z)),
     "Steer_Encoder": (("SteerCount", S_STEER_COUNT),),
-    "GPS_Velocity": (("SpeedOverGround", S_GPS_SPEED), ("FixType", S_GPS_FIX)),
+    "GPS_Velocity": (("SpeedOverGround", S_GPS_SPEED), ("FixType", S_GPS_FIX), ("CourseOverGround", S_GPS_COURSE)),
 }
 
 

@@ -1,0 +1,446 @@
+"""Kinematic attitude filter: roll from the gyros and the accelerometer, no tyre model (jitted, allocation-free).
+
+Why it exists (docs/estimator.md, "Attitude"): roll from the Sharp model depends on the tyres the model
+assumes; every real scooter's tyres differ. Rigid-body kinematics do not: the gyros integrate roll, the
+accelerometer sees gravity once the motion terms are removed, and two exact constraints pin what the
+gyros cannot:
+
+- **Lateral specific force** (100 Hz). In yaw-frame axes (x along the heading, y right, z down), at the
+  IMU mounted ``h`` above ground and ``x_i`` ahead of the reference point (the simulator's and the
+  chassis' geometry, ``docs/simulator.md``):
+
+      a_y = a_v + u r + x_i r' - h r^2 sin(phi) + h (cos(phi) phi'' - sin(phi) phi'^2)
+      a_z = h (sin(phi) phi'' + cos(phi) phi'^2)
+      f_y(body) = a_y cos(phi) + (a_z - g) sin(phi) + b_ay
+
+  with ``r`` the ground yaw rate, ``a_v`` = dv_y/dt (a first-order Markov state: sideslip transients
+  are short and v_y is bounded) and ``b_ay`` the accelerometer bias. The lever-arm terms need phi''
+  and r': they are taken as central differences, so the filter processes each cycle's measurement one
+  cycle late (a lagged derivative here costs more than 1 deg of roll in a long turn, tested) and
+  predicts the current roll with the gyro.
+- **Horizontal rotation axis** (100 Hz): off a pitching road the vehicle turns about the vertical, so
+  the body rates satisfy (q - b_q) cos(phi) - (r_b - b_r) sin(phi) = pitch rate ~ 0. In a turn this
+  gives roll independently of the accelerometer (d/dphi = -r): it is what separates roll from an
+  accelerometer bias, which the lateral force alone cannot.
+- **GPS course over ground** (10 Hz, 0.1 s latency): course = psi + v_y / u, which makes the yaw-gyro
+  bias observable without a stop.
+- **Standstill**: zero rates, zero sideslip (the gyro biases are read directly).
+
+In a steady turn one direction of (phi, b_q, b_r, b_ay) is still unobservable (a roll error with the
+matching biases fits every constraint); straights and changes of lean remove it. The biases are random
+walks and survive a restart of the dynamic states.
+
+Extended Kalman filter on x = [phi, psi, b_p, b_q, b_r, b_ay, v_y, a_v]; innovations beyond
+``gate`` standard deviations are not applied (counted in OUT_REJECTED).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# ---- filter state x ----
+X_PHI = 0  # rad, roll (SAE: positive leaning right)
+X_PSI = 1  # rad, heading (unwrapped)
+X_BP = 2  # rad/s, roll-gyro bias
+X_BQ = 3  # rad/s, pitch-gyro bias
+X_BR = 4  # rad/s, yaw-gyro bias
+X_BAY = 5  # m/s^2, lateral accelerometer bias
+X_VY = 6  # m/s, lateral velocity of the reference point
+X_AV = 7  # m/s^2, its derivative
+N_X = 8
+N_DYNAMIC_STATES = (X_PHI, X_PSI, X_VY, X_AV)  # reset on a restart; the biases are kept
+
+# ---- state buffer layout ----
+ST_X = 0  # x (N_X)
+ST_P = ST_X + N_X  # covariance, row-major N_X * N_X
+ST_INIT = ST_P + N_X * N_X  # 1 once initialised
+ST_PSI_INIT = ST_INIT + 1  # 1 once the heading has been set from a GPS course
+ST_PREV = ST_PSI_INIT + 1  # inputs of the previous cycle (processed one cycle late)
+PREV_P, PREV_Q, PREV_R, PREV_FY, PREV_U, PREV_U_VAR, PREV_OK, PREV_P2, PREV_RG, PREV_RG2 = range(10)
+N_PREV = 10
+ST_PSI_HIST = ST_PREV + N_PREV  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
+MAX_LATENCY_CYCLES = 32
+ST_PSI_HEAD = ST_PSI_HIST + MAX_LATENCY_CYCLES
+ST_REJECTED = ST_PSI_HEAD + 1  # consecutive rejected lateral-force innovations
+ST_TMP = ST_REJECTED + 1  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
+STATE_SIZE = ST_TMP + 3 * N_X + N_X * N_X
+
+# ---- parameters (float64 vector, `attitude_params` builds it from the config) ----
+A_DT = 0
+A_G = 1
+A_IMU_HEIGHT = 2  # m above ground
+A_IMU_FORWARD = 3  # m ahead of the reference point
+A_Q_ROLL = 4  # rad/sqrt(s), roll random walk beyond the gyro (pitch coupling, vibration)
+A_Q_HEADING = 5  # rad/sqrt(s)
+A_Q_GYRO_BIAS = 6  # rad/s/sqrt(s)
+A_Q_ACCEL_BIAS = 7  # m/s^2/sqrt(s)
+A_Q_SIDESLIP_ACCEL = 8  # m/s^2/sqrt(s), drive of the Markov a_v
+A_SIDESLIP_ACCEL_TIME = 9  # s, correlation time of a_v
+A_SIDESLIP_TIME = 10  # s, mean reversion of v_y
+A_R_LATERAL = 11  # m/s^2, lateral specific-force noise (sensor + unmodelled)
+A_R_PITCH_RATE = 12  # rad/s, pitch rate of the chassis taken as noise
+A_R_COURSE = 13  # rad, GPS course noise at speed
+A_COURSE_MIN_SPEED = 14  # m/s, below: course not used
+A_LATENCY_CYCLES = 15  # GPS latency in cycles
+A_GATE = 16  # innovation gate [standard deviations]
+A_R_STANDSTILL_RATE = 17  # rad/s, gyro noise at standstill (zero-rate update)
+A_INIT_ROLL_SD = 18  # rad
+A_INIT_GYRO_BIAS_SD = 19  # rad/s
+A_INIT_ACCEL_BIAS_SD = 20  # m/s^2
+A_REOPEN_AFTER = 21  # consecutive rejected cycles after which the roll uncertainty is reopened
+PARAM_SIZE = 22
+
+# ---- outputs (float64 vector written every cycle) ----
+OUT_ROLL = 0  # rad, at the current cycle
+OUT_ROLL_RATE = 1  # rad/s, bias-corrected roll gyro
+OUT_YAW_RATE = 2  # rad/s, ground yaw rate, bias-corrected
+OUT_ROLL_SD = 3  # rad, standard deviation of the roll estimate
+OUT_BP = 4
+OUT_BQ = 5
+OUT_BR = 6
+OUT_BAY = 7
+OUT_VY = 8
+OUT_REJECTED = 9  # 1 if this cycle's lateral-force innovation was gated out
+OUT_HEADING = 10  # rad, wrapped to (-pi, pi]
+OUT_SIZE = 11
+
+
+def new_state() -> np.ndarray:
+    return np.zeros(STATE_SIZE)
+
+
+def attitude_params(
+    dt: float,
+    g: float,
+    imu_height: float,
+    imu_forward: float,
+    tuning,
+    gps_latency: float,
+) -> np.ndarray:
+    """The parameter vector from the config's `estimator.attitude` section (`AttitudeTuning`)."""
+    prm = np.zeros(PARAM_SIZE)
+    prm[A_DT] = dt
+    prm[A_G] = g
+    prm[A_IMU_HEIGHT] = imu_height
+    prm[A_IMU_FORWARD] = imu_forward
+    prm[A_Q_ROLL] = tuning.roll_noise
+    prm[A_Q_HEADING] = tuning.heading_noise
+    prm[A_Q_GYRO_BIAS] = tuning.gyro_bias_rate
+    prm[A_Q_ACCEL_BIAS] = tuning.accel_bias_rate
+    prm[A_Q_SIDESLIP_ACCEL] = tuning.sideslip_accel_noise
+    prm[A_SIDESLIP_ACCEL_TIME] = tuning.sideslip_accel_time
+    prm[A_SIDESLIP_TIME] = tuning.sideslip_time
+    prm[A_R_LATERAL] = tuning.lateral_accel_noise
+    prm[A_R_PITCH_RATE] = tuning.pitch_rate_noise
+    prm[A_R_COURSE] = math.radians(tuning.course_noise_deg)
+    prm[A_COURSE_MIN_SPEED] = tuning.course_min_speed
+    prm[A_LATENCY_CYCLES] = min(MAX_LATENCY_CYCLES, max(0, round(gps_latency / dt)))
+    prm[A_GATE] = tuning.innovation_gate
+    prm[A_R_STANDSTILL_RATE] = tuning.standstill_rate_noise
+    prm[A_INIT_ROLL_SD] = tuning.initial_roll_sd
+    prm[A_INIT_GYRO_BIAS_SD] = tuning.initial_gyro_bias_sd
+    prm[A_INIT_ACCEL_BIAS_SD] = tuning.initial_accel_bias_sd
+    prm[A_REOPEN_AFTER] = tuning.reopen_after_cycles
+    return prm
+
+
+@njit(cache=True)
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True)
+def _update(st: np.ndarray, H: np.ndarray, innovation: float, variance: float, gate: float) -> bool:
+    """Scalar EKF update x += K e, P -= K H P (Joseph-free, symmetrised); False if gated out."""
+    x = st[ST_X : ST_X + N_X]
+    P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
+    PH = st[ST_TMP + N_X : ST_TMP + 2 * N_X]
+    s = variance
+    for i in range(N_X):
+        acc = 0.0
+        for j in range(N_X):
+            acc += P[i, j] * H[j]
+        PH[i] = acc
+    for i in range(N_X):
+        s += H[i] * PH[i]
+    if not (s > 0.0) or innovation * innovation > gate * gate * s:
+        return False
+    for i in range(N_X):
+        x[i] += PH[i] / s * innovation
+    for i in range(N_X):
+        for j in range(N_X):
+            P[i, j] -= PH[i] * PH[j] / s
+    for i in range(N_X):  # keep P symmetric and its diagonal positive against round-off
+        for j in range(i + 1, N_X):
+            m = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = m
+            P[j, i] = m
+        if P[i, i] < 1e-18:
+            P[i, i] = 1e-18
+    return True
+
+
+@njit(cache=True)
+def _clear_h(H: np.ndarray) -> None:
+    for i in range(N_X):
+        H[i] = 0.0
+
+
+@njit(cache=True)
+def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
+    """(Re)start roll, heading and sideslip; keep the biases and their covariance."""
+    x = st[ST_X : ST_X + N_X]
+    P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
+    keep_biases = st[ST_INIT] != 0.0
+    for i in range(N_X):
+        for j in range(N_X):
+            bias_block = 2 <= i <= 5 and 2 <= j <= 5
+            if not (keep_biases and bias_block):
+                P[i, j] = 0.0
+    x[X_PHI] = roll
+    x[X_PSI] = 0.0
+    x[X_VY] = 0.0
+    x[X_AV] = 0.0
+    P[X_PHI, X_PHI] = prm[A_INIT_ROLL_SD] ** 2
+    P[X_PSI, X_PSI] = 1.0
+    P[X_VY, X_VY] = 0.5**2
+    P[X_AV, X_AV] = 1.0
+    if not keep_biases:
+        for b in (X_BP, X_BQ, X_BR):
+            x[b] = 0.0
+            P[b, b] = prm[A_INIT_GYRO_BIAS_SD] ** 2
+        x[X_BAY] = 0.0
+        P[X_BAY, X_BAY] = prm[A_INIT_ACCEL_BIAS_SD] ** 2
+    st[ST_PSI_INIT] = 0.0
+    st[ST_REJECTED] = 0.0
+    for k in range(MAX_LATENCY_CYCLES):
+        st[ST_PSI_HIST + k] = 0.0
+    st[ST_INIT] = 1.0
+
+
+@njit(cache=True)
+def set_biases(st: np.ndarray, bp: float, bq: float, br: float, bay: float, sd_gyro: float, sd_accel: float) -> None:
+    """Start from biases known from an earlier run (the state file), with their uncertainty."""
+    x = st[ST_X : ST_X + N_X]
+    P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
+    for i in range(2, 6):
+        for j in range(N_X):
+            P[i, j] = 0.0
+            P[j, i] = 0.0
+    x[X_BP], x[X_BQ], x[X_BR], x[X_BAY] = bp, bq, br, bay
+    P[X_BP, X_BP] = P[X_BQ, X_BQ] = P[X_BR, X_BR] = sd_gyro * sd_gyro
+    P[X_BAY, X_BAY] = sd_accel * sd_accel
+    st[ST_INIT] = 1.0
+
+
+@njit(cache=True)
+def restart(st: np.ndarray) -> None:
+    """Forget roll, heading and sideslip at the next step (a re-initialisation); biases are kept."""
+    if st[ST_INIT] != 0.0:
+        st[ST_INIT] = 2.0  # 2: initialised before, restart the dynamic states with the biases kept
+
+
+@njit(cache=True)
+def attitude_step(
+    st: np.ndarray,
+    out: np.ndarray,
+    prm: np.ndarray,
+    p: float,
+    q: float,
+    r: float,
+    f_y: float,
+    f_z: float,
+    u: float,
+    u_sd: float,
+    rates_ok: bool,
+    accel_ok: bool,
+    course: float,
+    course_new: bool,
+    standstill: bool,
+) -> None:
+    """One cycle. p, q, r: body rates [rad/s]; f_y, f_z: body specific force [m/s^2]; u: forward speed and
+    u_sd its standard deviation [m/s]; course [rad] valid when course_new (a fresh GPS fix at speed);
+    standstill: the vehicle is known to stand still (zero rates and sideslip)."""
+    dt = prm[A_DT]
+    g = prm[A_G]
+    h = prm[A_IMU_HEIGHT]
+    x = st[ST_X : ST_X + N_X]
+    P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
+    H = st[ST_TMP + 2 * N_X : ST_TMP + 3 * N_X]
+    gate = prm[A_GATE]
+    prev = st[ST_PREV : ST_PREV + N_PREV]
+
+    if st[ST_INIT] != 1.0:
+        if not (rates_ok and accel_ok):
+            for k in range(OUT_SIZE):
+                out[k] = 0.0
+            return
+        # roll from gravity alone (at rest or riding straight; a turn is corrected within seconds)
+        roll0 = math.atan2(-f_y, -f_z) if f_z < -0.5 * g else 0.0
+        _reset_dynamic(st, prm, roll0)
+        prev[PREV_P] = p
+        prev[PREV_P2] = p
+        prev[PREV_Q] = q
+        prev[PREV_R] = r
+        prev[PREV_FY] = f_y
+        prev[PREV_U] = u
+        prev[PREV_U_VAR] = u_sd * u_sd
+        prev[PREV_OK] = 0.0
+        s0, c0 = math.sin(roll0), math.cos(roll0)
+        prev[PREV_RG] = q * s0 + r * c0
+        prev[PREV_RG2] = prev[PREV_RG]
+
+    # ---- 1. measurements of the previous cycle, with central-difference lever-arm derivatives ----
+    phi = x[X_PHI]
+    s, c = math.sin(phi), math.cos(phi)
+    bp, bq, br = x[X_BP], x[X_BQ], x[X_BR]
+    q1, r1, u1 = prev[PREV_Q] - bq, prev[PREV_R] - br, prev[PREV_U]
+    rg1 = q1 * s + r1 * c
+    phid1 = prev[PREV_P] - bp
+    rejected = 0.0
+    if rates_ok:
+        phidd1 = (p - prev[PREV_P2]) / (2.0 * dt)
+        rg_now = (q - bq) * s + (r - br) * c
+        rgd1 = (rg_now - prev[PREV_RG2]) / (2.0 * dt)
+    else:
+        phidd1 = 0.0
+        rgd1 = 0.0
+    if prev[PREV_OK] != 0.0:
+        a_y = x[X_AV] + u1 * rg1 + prm[A_IMU_FORWARD] * rgd1 - h * rg1 * rg1 * s + h * (c * phidd1 - s * phid1 * phid1)
+        a_z = h * (s * phidd1 + c * phid1 * phid1)
+        predicted = a_y * c + (a_z - g) * s + x[X_BAY]
+        _clear_h(H)
+        H[X_PHI] = -a_y * s + (a_z - g) * c
+        dud_rg = (u1 - 2.0 * h * rg1 * s) * c
+        H[X_BQ] = -dud_rg * s
+        H[X_BR] = -dud_rg * c
+        H[X_BAY] = 1.0
+        H[X_AV] = c
+        variance = prm[A_R_LATERAL] ** 2 + prev[PREV_U_VAR] * rg1 * rg1
+        if _update(st, H, prev[PREV_FY] - predicted, variance, gate):
+            st[ST_REJECTED] = 0.0
+        else:
+            rejected = 1.0
+            st[ST_REJECTED] += 1.0
+            if st[ST_REJECTED] >= prm[A_REOPEN_AFTER]:
+                # the data have disagreed for a while: the roll is not what we believe, say so
+                P[X_PHI, X_PHI] += prm[A_INIT_ROLL_SD] ** 2
+                st[ST_REJECTED] = 0.0
+        # the rotation axis is vertical: pitch rate (q cos - r sin) ~ 0
+        phi = x[X_PHI]
+        s, c = math.sin(phi), math.cos(phi)
+        bq, br = x[X_BQ], x[X_BR]
+        q1, r1 = prev[PREV_Q] - bq, prev[PREV_R] - br
+        _clear_h(H)
+        H[X_PHI] = -(q1 * s + r1 * c)
+        H[X_BQ] = -c
+        H[X_BR] = s
+        _update(st, H, -(q1 * c - r1 * s), prm[A_R_PITCH_RATE] ** 2, gate)
+
+    if standstill and rates_ok:
+        # the true rates and the sideslip are zero: the gyros read their biases
+        rs = prm[A_R_STANDSTILL_RATE] ** 2
+        for b, m in ((X_BP, p), (X_BQ, q), (X_BR, r)):
+            _clear_h(H)
+            H[b] = 1.0
+            _update(st, H, m - x[b], rs, gate)
+        _clear_h(H)
+        H[X_VY] = 1.0
+        _update(st, H, -x[X_VY], 0.01, gate)
+        _clear_h(H)
+        H[X_AV] = 1.0
+        _update(st, H, -x[X_AV], 0.01, gate)
+
+    # ---- 2. GPS course (describes the vehicle `latency` cycles ago) ----
+    n_lat = int(prm[A_LATENCY_CYCLES])
+    if course_new and u >= prm[A_COURSE_MIN_SPEED]:
+        delayed_psi = x[X_PSI]
+        for k in range(n_lat):
+            delayed_psi -= st[ST_PSI_HIST + k]
+        if st[ST_PSI_INIT] == 0.0:
+            x[X_PSI] = course - x[X_VY] / u + (x[X_PSI] - delayed_psi)
+            for i in range(N_X):
+                P[X_PSI, i] = 0.0
+                P[i, X_PSI] = 0.0
+            P[X_PSI, X_PSI] = prm[A_R_COURSE] ** 2
+            st[ST_PSI_INIT] = 1.0
+        else:
+            _clear_h(H)
+            H[X_PSI] = 1.0
+            H[X_VY] = 1.0 / u
+            _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2, gate)
+
+    # ---- 3. predict to this cycle with the previous cycle's rates ----
+    phi = x[X_PHI]
+    s, c = math.sin(phi), math.cos(phi)
+    bp, bq, br = x[X_BP], x[X_BQ], x[X_BR]
+    q1, r1 = prev[PREV_Q] - bq, prev[PREV_R] - br
+    rg1 = q1 * s + r1 * c
+    pitch1 = q1 * c - r1 * s
+    d_psi = dt * rg1
+    x[X_PHI] += dt * (prev[PREV_P] - bp)
+    x[X_PSI] += d_psi
+    ta = prm[A_SIDESLIP_ACCEL_TIME]
+    tv = prm[A_SIDESLIP_TIME]
+    x[X_VY] += dt * (x[X_AV] - x[X_VY] / tv)
+    x[X_AV] *= 1.0 - dt / ta
+    # P <- F P F' + Q with F = I + dt A, A sparse: [phi,bp]=-1, [psi,phi]=pitch, [psi,bq]=-s, [psi,br]=-c,
+    # [vy,vy]=-1/tv, [vy,av]=1, [av,av]=-1/ta
+    FP = st[ST_TMP + 3 * N_X : ST_TMP + 3 * N_X + N_X * N_X].reshape((N_X, N_X))
+    for j in range(N_X):
+        for i in range(N_X):
+            FP[i, j] = P[i, j]
+        FP[X_PHI, j] -= dt * P[X_BP, j]
+        FP[X_PSI, j] += dt * (pitch1 * P[X_PHI, j] - s * P[X_BQ, j] - c * P[X_BR, j])
+        FP[X_VY, j] += dt * (P[X_AV, j] - P[X_VY, j] / tv)
+        FP[X_AV, j] -= dt * P[X_AV, j] / ta
+    for i in range(N_X):
+        for j in range(N_X):
+            P[i, j] = FP[i, j]
+        P[i, X_PHI] -= dt * FP[i, X_BP]
+        P[i, X_PSI] += dt * (pitch1 * FP[i, X_PHI] - s * FP[i, X_BQ] - c * FP[i, X_BR])
+        P[i, X_VY] += dt * (FP[i, X_AV] - FP[i, X_VY] / tv)
+        P[i, X_AV] -= dt * FP[i, X_AV] / ta
+    P[X_PHI, X_PHI] += prm[A_Q_ROLL] ** 2 * dt
+    P[X_PSI, X_PSI] += prm[A_Q_HEADING] ** 2 * dt
+    qb = prm[A_Q_GYRO_BIAS] ** 2 * dt
+    P[X_BP, X_BP] += qb
+    P[X_BQ, X_BQ] += qb
+    P[X_BR, X_BR] += qb
+    P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
+    P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * dt
+    P[X_VY, X_VY] += 1e-6 * dt
+    # heading increments for the GPS latency (newest first)
+    for k in range(MAX_LATENCY_CYCLES - 1, 0, -1):
+        st[ST_PSI_HIST + k] = st[ST_PSI_HIST + k - 1]
+    st[ST_PSI_HIST] = d_psi
+
+    # ---- 4. this cycle's inputs become the previous ones ----
+    prev[PREV_P2] = prev[PREV_P]
+    prev[PREV_RG2] = prev[PREV_RG]
+    if rates_ok:
+        prev[PREV_P] = p
+        prev[PREV_Q] = q
+        prev[PREV_R] = r
+    phi = x[X_PHI]
+    s, c = math.sin(phi), math.cos(phi)
+    prev[PREV_RG] = (prev[PREV_Q] - x[X_BQ]) * s + (prev[PREV_R] - x[X_BR]) * c
+    prev[PREV_FY] = f_y
+    prev[PREV_U] = u
+    prev[PREV_U_VAR] = u_sd * u_sd
+    prev[PREV_OK] = 1.0 if (rates_ok and accel_ok) else 0.0
+
+    out[OUT_ROLL] = phi
+    out[OUT_ROLL_RATE] = prev[PREV_P] - x[X_BP]
+    out[OUT_YAW_RATE] = prev[PREV_RG]
+    out[OUT_ROLL_SD] = math.sqrt(max(P[X_PHI, X_PHI], 0.0))
+    out[OUT_BP] = x[X_BP]
+    out[OUT_BQ] = x[X_BQ]
+    out[OUT_BR] = x[X_BR]
+    out[OUT_BAY] = x[X_BAY]
+    out[OUT_VY] = x[X_VY]
+    out[OUT_REJECTED] = rejected
+    out[OUT_HEADING] = _wrap(x[X_PSI])
