@@ -582,7 +582,8 @@ def matrix_markdown(result: dict) -> str:
         "the nominal `config/scooter.yaml` with no persisted state). The matrix of issue #12: every scenario x",
         "{" + ", ".join(v["label"] for v in result["variants"]) + "}; `mu 0.85` is `mu_scale=0.85`, a factor on",
         "the scenario's friction profile, so `mu_drop` keeps its drop (0.9 -> 0.5 becomes 0.765 -> 0.425).",
-        f"{len(result['cells'])} cells on {result['workers']} processes in {result['wall_s']} s.",
+        f"{len(result['cells'])} cells and {len(result['extra_cells'])} robustness rides on {result['workers']}"
+        f" processes in {result['wall_s']} s (`ptw-rt evaluate --matrix` alone runs the {len(result['cells'])} cells).",
         "",
         "## Targets",
         "",
