@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import copy
 import io
+import json
+import sys
 
 import numpy as np
 import pytest
@@ -133,6 +135,7 @@ def test_reduced_matrix_returns_every_metric():
         assert "roll_le_peer" in c["targets"] and "torque_le_half_zero" in c["targets"]
         assert c["result"]["baselines"]["ahrs_peer_roll_rmse_deg"] == m["roll_rmse_deg"]["peer"]
     assert "roll_mean_ratio_to_peer_le_0.7" in res["targets"]["overall"]
+    json.loads(json.dumps(res))  # --json prints it as is
     text = mx.matrix_text(res)
     assert "dlc_50" in text and "tyres x0.7" in text
     md = mx.matrix_markdown(res)
@@ -166,3 +169,41 @@ def test_wrong_start_hook(monkeypatch):
     ev = evaluate_ride(ride, initial_stiffness_scale=(0.7, 1.3))
     assert calls == [(0.7, 1.3)] and ev.result["initial_stiffness_scale"]["applied"] is True
     assert mx._wrong_start_available(None, None)
+    run = mx.run_wrong_start(("dlc_50", 0.7, None, mx.DEFAULT_CONFIG, None))
+    assert run["available"] and set(run["convergence"]) == {k for k, *_ in mx.STIFFNESS}
+    assert calls[-1] == (0.7, 0.7)
+    text = mx.learning_text({"wrong_start": {"available": True, "runs": [run]}, "cells": []})
+    assert "wrong start x0.7 on dlc_50" in text
+
+
+def test_progress_bar_on_a_terminal():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    buf = Tty()
+    p = mx.Progress(2, stream=buf)
+    p.step("a")
+    p.step("b")
+    out = buf.getvalue()
+    assert out.count("\r") == 2 and "[###############...............] 1/2" in out and out.endswith("\n")
+
+
+def test_evaluate_without_the_eval_extra(monkeypatch):
+    from ptw_rt.eval import ahrs_peer
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import simulate
+
+    monkeypatch.setattr(ahrs_peer, "available", lambda: False)
+    ev = evaluate_ride(simulate("dlc_50", duration=6.0))
+    assert ev.baselines["ahrs_peer_roll"] is None
+    assert ev.result["baselines"]["ahrs_peer_roll_rmse_deg"] is None
+    assert mx.cell_metrics(ev)["roll_rmse_deg"]["peer"] is None
+
+
+def test_the_daemon_never_loads_imufusion():
+    import subprocess
+
+    code = "import sys, ptw_rt.runtime.daemon, ptw_rt.cli, ptw_rt.eval.evaluate; print('imufusion' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
