@@ -78,6 +78,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--scenario", help="scenario name (see `ptw-rt simulate --list`)")
     p.add_argument("--all", action="store_true", help="every scenario, one table")
+    p.add_argument(
+        "--matrix",
+        action="store_true",
+        help="issue #12's matrix: every scenario x {nominal, tyres x0.7, x1.3, mu 0.85, mass +50 kg}, in parallel",
+    )
+    p.add_argument("--jobs", type=int, default=None, help="with --matrix: worker processes (default: all cores)")
     p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
     p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE", help="plant perturbation")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML")
@@ -86,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--markdown",
         action="store_true",
-        help="with --all: the results document (nominal + robustness tables, papers' figures), e.g. > docs/results.md",
+        help="with --matrix (or --all): the results document, e.g. `--matrix --markdown > docs/results.md`",
     )
     p.set_defaults(handler="ptw_rt.eval.evaluate:run_evaluate")
 

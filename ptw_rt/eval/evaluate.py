@@ -51,6 +51,7 @@ class Evaluation:
     mask: np.ndarray  # samples scored
     baselines: dict[str, np.ndarray]
     result: dict
+    samples: np.ndarray | None = None  # (N, SAMPLE_SIZE): the Sample each cycle's step received
 
 
 def _rms(e: np.ndarray) -> float | None:
@@ -74,16 +75,32 @@ def _pct(est: float, true: float) -> float | None:
     return round(100.0 * (est - true) / true, 2)
 
 
-def evaluate_ride(ride: Ride, config: Path = DEFAULT_CONFIG, design_file: Path | None = None) -> Evaluation:
+def evaluate_ride(
+    ride: Ride,
+    config: Path = DEFAULT_CONFIG,
+    design_file: Path | None = None,
+    initial_stiffness_scale: tuple[float, float] | None = None,
+) -> Evaluation:
+    """Score one ride. `initial_stiffness_scale` = (front, rear): the estimator starts from the nominal
+    tyres times these factors (a wrong start), if it offers `set_initial_stiffness_scale(front, rear)`;
+    `result["initial_stiffness_scale"]` then says whether it was applied."""
     runner = build_runner(config, design_file)
     settings = runner.settings
+    applied = None
+    if initial_stiffness_scale is not None:
+        setter = getattr(runner.estimator, "set_initial_stiffness_scale", None)
+        applied = setter is not None
+        if setter is not None:
+            setter(*initial_stiffness_scale)
     frames = list(encode_frames(ride, runner.codec))
     times: list[float] = []
     rows: list[np.ndarray] = []
+    samples: list[np.ndarray] = []
 
     def keep(now: float, est: np.ndarray) -> None:
         times.append(now)
         rows.append(est.copy())
+        samples.append(runner.sample.copy())  # what this cycle's step received (the peer's input)
 
     drive_log(frames, runner, keep, start=ride.epoch)
     t = np.asarray(times) - ride.epoch
@@ -101,7 +118,10 @@ def evaluate_ride(ride: Ride, config: Path = DEFAULT_CONFIG, design_file: Path |
     u, r, a_y = E[:, L.E_SPEED], E[:, L.E_YAW_RATE], E[:, L.E_LAT_ACCEL]
     smo = fo.run_smo(u, r, a_y, dt, geom)
     sta = fo.run_sta(u, r, a_y, dt, geom)
+    S = np.vstack(samples)
+    peer = _ahrs_peer(S, dt, settings.sensors)
     baselines = {
+        "ahrs_peer_roll": peer,
         "kinematic_roll": kin,
         "complementary_roll": comp,
         "smo_fy_front": smo[0],
@@ -140,6 +160,9 @@ def evaluate_ride(ride: Ride, config: Path = DEFAULT_CONFIG, design_file: Path |
             metrics["stiffness_err_pct"][key] = None
 
     base = {
+        "ahrs_peer_roll_rmse_deg": (
+            _round(deg(_rms(peer[m] - truth["roll"][m]))) if m.any() and peer is not None else None
+        ),
         "kinematic_roll_rmse_deg": _round(deg(_rms(kin[m] - truth["roll"][m]))) if m.any() else None,
         "complementary_roll_rmse_deg": _round(deg(_rms(comp[m] - truth["roll"][m]))) if m.any() else None,
         "smo_fy_rmse_n": {
@@ -162,7 +185,19 @@ def evaluate_ride(ride: Ride, config: Path = DEFAULT_CONFIG, design_file: Path |
         "duration_s": ride.duration,
         "crashed_at": ride.crashed_at,
     }
-    return Evaluation(ride, t, E, truth, mask, baselines, result)
+    if initial_stiffness_scale is not None:
+        result["initial_stiffness_scale"] = {"front_rear": list(initial_stiffness_scale), "applied": applied}
+    return Evaluation(ride, t, E, truth, mask, baselines, result, S)
+
+
+def _ahrs_peer(samples: np.ndarray, dt: float, sensors: dict) -> np.ndarray | None:
+    """Roll of the Fusion AHRS peer per cycle (None without the eval extra)."""
+    from ptw_rt.eval import ahrs_peer
+
+    if not ahrs_peer.available():
+        return None
+    out = ahrs_peer.run_peer(samples, dt, sensors["imu_height"], sensors["imu_forward"], sensors["gps_latency"])
+    return out["roll"]
 
 
 def _stiffness_baselines(vehicle, dt, E, truth, use) -> dict:
@@ -242,7 +277,7 @@ def _targets(result: dict) -> dict:
 
 def _table(results: list[dict]) -> str:
     head = (
-        f"{'scenario':<16}{'roll':>7}{'uio':>7}{'kin':>7}{'comp':>7}{'tau':>8}{'tau%':>7}"
+        f"{'scenario':<16}{'roll':>7}{'peer':>7}{'uio':>7}{'kin':>7}{'comp':>7}{'tau':>8}{'tau%':>7}"
         f"{'vy':>7}{'Fyf':>7}{'Fyr':>7}{'Caf%':>8}{'Car%':>8}{'Cgf%':>8}{'Cgr%':>8}  targets"
     )
     lines = [head, "-" * len(head)]
@@ -255,14 +290,16 @@ def _table(results: list[dict]) -> str:
         met = r.get("targets", {})
         tgt = " ".join(f"{k}={'ok' if v else 'MISS'}" for k, v in met.items())
         lines.append(
-            f"{r['scenario']:<16}{f(m['roll_rmse_deg'])}{f(m['roll_uihosmo_rmse_deg'])}"
+            f"{r['scenario']:<16}{f(m['roll_rmse_deg'])}{f(b.get('ahrs_peer_roll_rmse_deg'))}"
+            f"{f(m['roll_uihosmo_rmse_deg'])}"
             f"{f(b['kinematic_roll_rmse_deg'])}{f(b['complementary_roll_rmse_deg'])}"
             f"{f(m['torque_rmse_nm'], 8)}{f(m.get('torque_rmse_pct_of_peak'), 7, 0)}{f(m['vy_rmse'])}"
             f"{f(m['fy_front_rmse_n'], 7, 0)}{f(m['fy_rear_rmse_n'], 7, 0)}"
             f"{f(s['front_cornering'], 8, 1)}{f(s['rear_cornering'], 8, 1)}{f(s['front_camber'], 8, 1)}"
             f"{f(s['rear_camber'], 8, 1)}  {tgt}"
         )
-    lines.append("roll/uio/kin/comp: roll RMSE [deg] (ours, UIHOSMO alone, kinematic, complementary); tau [N m];")
+    lines.append("roll/peer/uio/kin/comp: roll RMSE [deg] (ours, Fusion AHRS peer, UIHOSMO alone, kinematic,")
+    lines.append("complementary); tau [N m];")
     lines.append("vy [m/s]; Fy [N]; C%: stiffness error of the second-half mean [%]")
     return "\n".join(lines)
 
@@ -336,8 +373,12 @@ def _run_all(jobs: list[tuple]) -> list[dict]:
 
 
 def run_evaluate(args) -> int:
+    if getattr(args, "matrix", False):
+        from ptw_rt.eval.matrix import run_matrix_command
+
+        return run_matrix_command(args)
     if not args.all and not args.scenario:
-        raise UserFacingError("give --scenario NAME or --all")
+        raise UserFacingError("give --scenario NAME, --all or --matrix")
     if args.scenario and args.scenario not in SCENARIOS:
         raise UserFacingError(f"unknown scenario {args.scenario!r}; available: {', '.join(SCENARIOS)}")
     names = list(SCENARIOS) if args.all else [args.scenario]

@@ -33,6 +33,7 @@ METRIC_LABELS = {
     "fy_rear_rmse_n": ("rear lateral force RMSE", "N"),
     "stiffness_err_pct": ("stiffness error", "%"),
     "valid_share": ("share of time VALID", "-"),
+    "ahrs_peer_roll_rmse_deg": ("Fusion AHRS peer roll RMSE", "deg"),
     "kinematic_roll_rmse_deg": ("kinematic roll RMSE", "deg"),
     "complementary_roll_rmse_deg": ("complementary roll RMSE", "deg"),
     "smo_fy_rmse_n": ("SMO lateral force RMSE", "N"),
@@ -114,6 +115,17 @@ def _finish(fig, axes, t, settle, path: Path) -> Path:
     return path
 
 
+def _limits(*series, margin: float = 0.1) -> tuple[float, float]:
+    """y-limits spanning the finite values of the given series (None skipped), plus a margin."""
+    vals = [np.asarray(x)[np.isfinite(x)] for x in series if x is not None]
+    vals = [v for v in vals if v.size]
+    if not vals:
+        return -1.0, 1.0
+    lo, hi = min(float(v.min()) for v in vals), max(float(v.max()) for v in vals)
+    pad = margin * (hi - lo) if hi > lo else 1.0
+    return lo - pad, hi + pad
+
+
 def write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
     """Write the PNGs and summary.md of one evaluation into out_dir; return the written paths."""
     try:
@@ -143,17 +155,27 @@ def write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
         finally:
             plt.close(fig)
 
-    # roll (seed 000 fig. 8)
-    fig, axes = figure(1, height=4.0)
+    # roll (seed 000 fig. 8): published estimate, truth and the peer on top (y-limits from truth and ours);
+    # the UIHOSMO diagnostic (degrees off on the 10-bit encoder) in its own panel below
+    fig, axes = figure(2, height=3.2)
     ax = axes[0]
-    if "roll" in tr:
-        ax.plot(t, deg(tr["roll"]), **truth_style)
-    ax.plot(t, deg(E[:, L.E_ROLL]), **ours_style)
-    ax.plot(t, deg(E[:, L.E_ROLL_UIHOSMO]), color="C0", lw=0.9, ls="--", label="UIHOSMO alone")
-    ax.plot(t, deg(b["kinematic_roll"]), color="C2", lw=0.9, ls=":", label="kinematic")
-    ax.plot(t, deg(b["complementary_roll"]), color="C1", lw=0.9, ls="-.", label="complementary")
+    roll_truth = deg(tr["roll"]) if "roll" in tr else None
+    roll_ours = deg(E[:, L.E_ROLL])
+    if roll_truth is not None:
+        ax.plot(t, roll_truth, **truth_style)
+    ax.plot(t, roll_ours, **ours_style)
+    if b.get("ahrs_peer_roll") is not None:
+        ax.plot(t, deg(b["ahrs_peer_roll"]), color="C4", lw=1.0, label="Fusion AHRS peer", zorder=3)
+    ax.plot(t, deg(b["kinematic_roll"]), color="C2", lw=0.7, ls=":", alpha=0.7, label="kinematic")
+    ax.plot(t, deg(b["complementary_roll"]), color="C1", lw=0.7, ls="-.", alpha=0.7, label="complementary")
+    ax.set_ylim(*_limits(roll_ours, roll_truth))
     ax.set_ylabel("roll [deg]")
     ax.set_title(f"Roll angle - {evaluation.result.get('scenario')}")
+    ax = axes[1]
+    if roll_truth is not None:
+        ax.plot(t, roll_truth, **{**truth_style, "lw": 1.0})
+    ax.plot(t, deg(E[:, L.E_ROLL_UIHOSMO]), color="C0", lw=0.6, alpha=0.6, label="UIHOSMO alone (diagnostic)")
+    ax.set_ylabel("roll [deg]")
     save(fig, axes, "roll")
 
     # rider torque (fig. 9)
@@ -204,15 +226,32 @@ def write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
     # stiffnesses (seed 001 Tables I-II as time histories)
     fig, axes = figure(2, 2)
     panels = (
-        (L.E_C_ALPHA_FRONT, "c_alpha_front", "front cornering [N/rad]"),
-        (L.E_C_GAMMA_FRONT, "c_gamma_front", "front camber [N/rad]"),
-        (L.E_C_ALPHA_REAR, "c_alpha_rear", "rear cornering [N/rad]"),
-        (L.E_C_GAMMA_REAR, "c_gamma_rear", "rear camber [N/rad]"),
+        (L.E_C_ALPHA_FRONT, "c_alpha_front", "front cornering [N/rad]", L.V_CORNERING),
+        (L.E_C_GAMMA_FRONT, "c_gamma_front", "front camber [N/rad]", L.V_CAMBER),
+        (L.E_C_ALPHA_REAR, "c_alpha_rear", "rear cornering [N/rad]", L.V_CORNERING),
+        (L.E_C_GAMMA_REAR, "c_gamma_rear", "rear camber [N/rad]", L.V_CAMBER),
     )
-    for ax, (col, key, label) in zip(axes, panels, strict=True):
+    valid_bits = E[:, L.E_VALID].astype(np.int64)
+    for ax, (col, key, label, bit) in zip(axes, panels, strict=True):
         if key in tr:
             ax.plot(t, tr[key], **truth_style)
-        ax.plot(t, E[:, col], **{**ours_style, "label": "estimate"})
+        ax.plot(t, E[:, col], **{**ours_style, "lw": 0.6, "alpha": 0.35, "label": "estimate"})
+        valid = (valid_bits & bit) != 0
+        if valid.any():
+            ax.plot(
+                t, np.where(valid, E[:, col], np.nan), color="C3", lw=2.2, zorder=6, label="estimate, flagged valid"
+            )
+            ax.fill_between(
+                t,
+                0,
+                1,
+                where=valid,
+                transform=ax.get_xaxis_transform(),
+                color="C2",
+                alpha=0.15,
+                lw=0,
+                label="valid bit set",
+            )
         ax.set_ylabel(label)
     fig.suptitle("Tyre stiffnesses")
     for ax in axes[:2]:

@@ -1,0 +1,209 @@
+"""`ptw-rt evaluate --matrix` (issue #12): metrics, targets, progress and the wrong-start hook."""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from ptw_rt.eval import matrix as mx
+
+
+def test_valid_stiffness_stats_on_synthetic_arrays():
+    t = np.arange(100) * 0.1  # 0 .. 9.9 s
+    truth = np.full(100, 1000.0)
+    est = truth.copy()
+    est[20:40] = 1100.0  # +10 %
+    est[40:50] = 850.0  # -15 %
+    est[50:60] = 1500.0  # +50 %, but not flagged valid
+    valid = np.zeros(100, bool)
+    valid[20:50] = True
+    valid[80:] = True  # exact there
+    scored = t >= 1.0
+    s = mx.valid_stiffness_stats(t, est, truth, valid, scored, duration=10.0)
+    assert s["valid_frames"] == 50
+    assert s["mean_abs_err_pct"] == pytest.approx((20 * 10 + 10 * 15) / 50)
+    assert s["max_abs_err_pct"] == pytest.approx(15.0)
+    assert s["valid_share_second_half"] == pytest.approx(0.4)  # 20 of the 50 frames with t >= 5 s
+    # frames not scored do not count, even when flagged valid
+    s2 = mx.valid_stiffness_stats(t, est, truth, valid, t >= 4.5, duration=10.0)
+    assert s2["valid_frames"] == 25 and s2["max_abs_err_pct"] == pytest.approx(15.0)
+    none = mx.valid_stiffness_stats(t, est, truth, np.zeros(100, bool), scored, duration=10.0)
+    assert none["valid_frames"] == 0 and none["mean_abs_err_pct"] is None and none["valid_share_second_half"] == 0.0
+
+
+def test_settle_time_and_cornering_seconds():
+    t = np.arange(0, 40, 0.01)
+    truth = np.where(t < 20, 1000.0, 600.0)
+    est = np.where(t < 20, 1000.0, 600.0 + 400.0 * np.exp(-(t - 20) / 2.0))  # within 10 % once 400 e^-x <= 60
+    s = mx.settle_time(t, est, truth, 20.0, 0.1)
+    assert s == pytest.approx(2.0 * np.log(400 / 60), abs=0.02)
+    assert mx.settle_time(t, truth * 1.5, truth, 0.0, 0.1) is None  # never
+    assert mx.settle_time(t, truth, truth, 0.0, 0.1) == 0.0
+    a_y = np.where((t > 5) & (t < 8), 3.0, 0.0)
+    assert mx.cornering_seconds(t, a_y, until=40.0) == pytest.approx(3.0, abs=0.02)
+
+
+def _cell(
+    scenario="slalom_30", variant="nominal", ours=0.3, peer=0.5, tau_pct=10.0, tau_zero=0.3, err=(5, 12), share=0.8
+):
+    sv = {
+        "valid_frames": 100,
+        "mean_abs_err_pct": err[0],
+        "max_abs_err_pct": err[1],
+        "valid_share_second_half": share,
+    }
+    return {
+        "scenario": scenario,
+        "variant": variant,
+        "metrics": {
+            "roll_rmse_deg": {"ours": ours, "peer": peer, "uihosmo": 9.0, "kinematic": 3.0, "complementary": 0.9},
+            "roll_ratio_to_peer": ours / peer,
+            "torque": {
+                "rmse_nm": 1.0,
+                "peak_nm": 10.0,
+                "zero_estimate_rmse_nm": 3.0,
+                "pct_of_peak": tau_pct,
+                "ratio_to_zero": tau_zero,
+            },
+            "stiffness_valid": {k: dict(sv) for k, *_ in mx.STIFFNESS},
+        },
+    }
+
+
+def test_targets_met_and_each_miss_flagged():
+    good = [_cell(), _cell("dlc_100", ours=0.3, peer=0.6), _cell("urban", "mu 0.85", ours=0.2, peer=0.4)]
+    res = mx.check_targets(copy.deepcopy(good))
+    assert res["met"], res["overall"]
+    assert res["overall"]["roll_mean_ratio_to_peer_le_0.7"]["value"] == pytest.approx((0.6 + 0.5 + 0.5) / 3, abs=1e-3)
+    misses = {
+        "roll_le_peer": dict(ours=0.55, peer=0.5),
+        "roll_le_1deg": dict(ours=1.2, peer=1.5),
+        "torque_le_15pct_peak": dict(tau_pct=16.0),
+        "torque_le_half_zero": dict(tau_zero=0.6),
+        "stiffness_valid_mean_le_10pct": dict(err=(11, 15)),
+        "stiffness_valid_max_le_20pct": dict(err=(5, 25)),
+        "stiffness_valid_ge_50pct_second_half": dict(share=0.4),
+    }
+    for target, kwargs in misses.items():
+        cells = copy.deepcopy(good) + [_cell(variant="tyres x0.7", **kwargs)]
+        res = mx.check_targets(cells)
+        assert not res["met"], target
+        assert res["overall"][target]["met"] is False, target
+        assert res["overall"][target]["missed"] == ["slalom_30 / tyres x0.7"], target
+        assert res["cells"]["slalom_30 / tyres x0.7"][target] is False
+    # dlc_100 nominal roll above 0.45 deg, the matrix mean ratio above 0.7
+    res = mx.check_targets([_cell("dlc_100", ours=0.5, peer=0.6)])
+    assert res["overall"]["dlc_100_roll_le_0.45deg"]["met"] is False
+    assert res["overall"]["roll_mean_ratio_to_peer_le_0.7"]["met"] is False
+    # the wrong-start check: not available is reported, not a miss
+    res = mx.check_targets(copy.deepcopy(good), {"available": False})
+    assert res["overall"]["wrong_start_converges_within_30s_cornering"]["value"] == "not available"
+    assert res["met"]
+    res = mx.check_targets(copy.deepcopy(good), {"available": True, "worst_cornering_s": 45.0})
+    assert res["overall"]["wrong_start_converges_within_30s_cornering"]["met"] is False
+    text = mx.targets_text(res)
+    assert "MISS" in text and "wrong_start" in text
+
+
+def test_reduced_matrix_returns_every_metric():
+    pytest.importorskip("imufusion")
+    res = mx.run_matrix(
+        ["dlc_50"],
+        [("nominal", ()), ("tyres x0.7", ("stiffness=0.7",))],
+        workers=1,
+        wrong_start=False,
+        progress=False,
+    )
+    assert [c["variant"] for c in res["cells"]] == ["nominal", "tyres x0.7"]
+    for c in res["cells"]:
+        m = c["metrics"]
+        for key in ("ours", "peer", "uihosmo", "kinematic", "complementary"):
+            assert m["roll_rmse_deg"][key] is not None and m["roll_rmse_deg"][key] >= 0.0, key
+        assert m["roll_ratio_to_peer"] == pytest.approx(
+            m["roll_rmse_deg"]["ours"] / m["roll_rmse_deg"]["peer"], rel=0.01
+        )
+        for key in ("rmse_nm", "peak_nm", "zero_estimate_rmse_nm", "pct_of_peak", "ratio_to_zero"):
+            assert m["torque"][key] is not None, key
+        assert set(m["stiffness_valid"]) == {k for k, *_ in mx.STIFFNESS}
+        for s in m["stiffness_valid"].values():
+            assert set(s) == {"valid_frames", "mean_abs_err_pct", "max_abs_err_pct", "valid_share_second_half"}
+        assert "roll_le_peer" in c["targets"] and "torque_le_half_zero" in c["targets"]
+        assert c["result"]["baselines"]["ahrs_peer_roll_rmse_deg"] == m["roll_rmse_deg"]["peer"]
+    assert "roll_mean_ratio_to_peer_le_0.7" in res["targets"]["overall"]
+    json.loads(json.dumps(res))  # --json prints it as is
+    text = mx.matrix_text(res)
+    assert "dlc_50" in text and "tyres x0.7" in text
+    md = mx.matrix_markdown(res)
+    assert md.startswith("# Estimator results") and "Fusion AHRS" in md and "peer" in md
+
+
+def test_progress_plain_lines_when_not_a_terminal():
+    buf = io.StringIO()
+    p = mx.Progress(3, stream=buf, every=1e9)
+    for k in range(3):
+        p.step(f"cell {k}")
+    lines = buf.getvalue().splitlines()
+    assert lines[0].startswith("matrix: 1/3") and lines[-1].startswith("matrix: 3/3")
+    assert "\r" not in buf.getvalue()
+
+
+def test_wrong_start_hook(monkeypatch):
+    from ptw_rt.core.estimator import Estimator
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import simulate
+
+    ride = simulate("dlc_50", duration=6.0)
+    if not hasattr(Estimator, "set_initial_stiffness_scale"):
+        ev = evaluate_ride(ride, initial_stiffness_scale=(0.7, 0.7))
+        assert ev.result["initial_stiffness_scale"] == {"front_rear": [0.7, 0.7], "applied": False}
+        assert not mx._wrong_start_available(None, None)
+    calls = []
+    monkeypatch.setattr(
+        Estimator, "set_initial_stiffness_scale", lambda self, f, r: calls.append((f, r)), raising=False
+    )
+    ev = evaluate_ride(ride, initial_stiffness_scale=(0.7, 1.3))
+    assert calls == [(0.7, 1.3)] and ev.result["initial_stiffness_scale"]["applied"] is True
+    assert mx._wrong_start_available(None, None)
+    run = mx.run_wrong_start(("dlc_50", 0.7, None, mx.DEFAULT_CONFIG, None))
+    assert run["available"] and set(run["convergence"]) == {k for k, *_ in mx.STIFFNESS}
+    assert calls[-1] == (0.7, 0.7)
+    text = mx.learning_text({"wrong_start": {"available": True, "runs": [run]}, "cells": []})
+    assert "wrong start x0.7 on dlc_50" in text
+
+
+def test_progress_bar_on_a_terminal():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    buf = Tty()
+    p = mx.Progress(2, stream=buf)
+    p.step("a")
+    p.step("b")
+    out = buf.getvalue()
+    assert out.count("\r") == 2 and "[###############...............] 1/2" in out and out.endswith("\n")
+
+
+def test_evaluate_without_the_eval_extra(monkeypatch):
+    from ptw_rt.eval import ahrs_peer
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import simulate
+
+    monkeypatch.setattr(ahrs_peer, "available", lambda: False)
+    ev = evaluate_ride(simulate("dlc_50", duration=6.0))
+    assert ev.baselines["ahrs_peer_roll"] is None
+    assert ev.result["baselines"]["ahrs_peer_roll_rmse_deg"] is None
+    assert mx.cell_metrics(ev)["roll_rmse_deg"]["peer"] is None
+
+
+def test_the_daemon_never_loads_imufusion():
+    import subprocess
+
+    code = "import sys, ptw_rt.runtime.daemon, ptw_rt.cli, ptw_rt.eval.evaluate; print('imufusion' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
