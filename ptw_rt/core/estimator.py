@@ -109,8 +109,6 @@ from ptw_rt.core.layout import (
     S_STALE,
     S_STEER_COUNT,
     S_YAW_RATE_BODY,
-    V_CAMBER,
-    V_CORNERING,
     V_FY_FRONT,
     V_FY_REAR,
     V_LAT_VEL,
@@ -655,20 +653,10 @@ def estimator_step(
         valid |= V_LAT_VEL
         if accel_ok:
             valid |= V_FY_FRONT | V_FY_REAR
-    restored = glue[G_RESTORED] != 0.0
-    settle = prm[P_STIFF_VALID_AFTER]
-    # an estimate pinned at its projection bound means the data disagree with the model: not published valid
-    pinned = 0
-    for k in range(4):
-        if abs(theta[k]) >= 0.99 * theta_bound[k]:
-            pinned |= 1 << k
-    # and an observer whose model does not explain the measured lateral acceleration has not identified anything
-    if glue[G_AY_RESIDUAL_MS] > prm[P_STIFF_MAX_RESIDUAL] * prm[P_STIFF_MAX_RESIDUAL]:
-        pinned = 15
-    if (restored or (glue[G_EXCITED_TIME + 0] >= settle and glue[G_EXCITED_TIME + 2] >= settle)) and not pinned & 5:
-        valid |= V_CORNERING
-    if (restored or (glue[G_EXCITED_TIME + 1] >= settle and glue[G_EXCITED_TIME + 3] >= settle)) and not pinned & 10:
-        valid |= V_CAMBER
+    # Tyre stiffness is never published VALID by this estimator yet. The timer-and-bound rule it had set
+    # the bits on 15 of 40 cells of the evaluation matrix while the values were 20-150 % off (issue #12);
+    # a valid bit must come from the learned value's own uncertainty, which the adaptive law does not
+    # carry. Until the stiffness learner with a covariance replaces it, V_CORNERING / V_CAMBER stay clear.
 
     # ---- outputs ----
     x_ad = ad_state[ad.X0 : ad.X1]

@@ -8,7 +8,9 @@ Measurements y = [delta (10-bit encoder), r (ground yaw rate), phi_dot (roll rat
 acceleration at the centre of mass), phi (roll of the kinematic attitude filter, ptw_rt.core.attitude)].
 The rates come bias-corrected by the attitude filter, which estimates the gyro biases from kinematics
 alone; its roll enters as a measurement, so where the tyre model is wrong the kinematics win, and the
-model adds what kinematics cannot give (torque, steer rate, lateral states, forces). Why this filter exists next to the papers' observers: with a
+model adds what kinematics cannot give (torque, steer rate, lateral states, forces).
+
+Why this filter exists next to the papers' observers: with a
 10-bit encoder the steer angle of a 100 km/h lane change stays below one count, so the UIHOSMO's
 roll and torque, which come from the second and third derivatives of the steer error, are dominated
 by quantisation (docs/estimator.md). The gyro roll rate and the lateral acceleration carry the same
