@@ -18,6 +18,13 @@ from typing import Any
 import yaml
 
 from ptw_rt.errors import UserFacingError
+from ptw_rt.io.untrusted import decode_utf8, excerpt, read_bounded, short_text
+
+# A configuration file is a few kB; these bound the time and memory of reading a hostile one.
+MAX_CONFIG_BYTES = 256 * 1024
+MAX_CONFIG_DEPTH = 32  # mapping/sequence nesting (the schema itself is 4 deep)
+MAX_CONFIG_NODES = 10_000  # keys, values and list items (config/scooter.yaml has about 220); bounds parse time
+MAX_INT_DIGITS = 32  # a longer integer is no configuration value (and int() of a huge one is slow)
 
 
 class ConfigError(UserFacingError, ValueError):
@@ -45,11 +52,13 @@ class Number:
                     hint = " (YAML reads exponents without a sign as text: write 2.0e+5, not 2.0e5)"
                 except ValueError:
                     pass
-            raise ConfigError(f"{key}: expected a number{self._unit()}, got {type(value).__name__} {value!r}{hint}")
+            raise ConfigError(
+                f"{key}: expected a number{self._unit()}, got {type(value).__name__} {excerpt(value)}{hint}"
+            )
         if self.integer and not float(value).is_integer():
-            raise ConfigError(f"{key}: expected a whole number, got {value!r}")
+            raise ConfigError(f"{key}: expected a whole number, got {excerpt(value)}")
         if not math.isfinite(value):
-            raise ConfigError(f"{key}: must be finite, got {value!r}")
+            raise ConfigError(f"{key}: must be finite, got {excerpt(value)}")
         for bound, ok, word in (
             (self.gt, lambda b: value > b, ">"),
             (self.ge, lambda b: value >= b, ">="),
@@ -57,7 +66,7 @@ class Number:
             (self.le, lambda b: value <= b, "<="),
         ):
             if bound is not None and not ok(bound):
-                raise ConfigError(f"{key}: must be {word} {bound}{self._unit()}, got {value!r}")
+                raise ConfigError(f"{key}: must be {word} {bound}{self._unit()}, got {excerpt(value)}")
         return int(value) if self.integer else float(value)
 
     def _unit(self) -> str:
@@ -71,9 +80,9 @@ class Text:
 
     def check(self, key: str, value: Any) -> str:
         if not isinstance(value, str):
-            raise ConfigError(f"{key}: expected text, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{key}: expected text, got {type(value).__name__} {excerpt(value)}")
         if self.choices is not None and value not in self.choices:
-            raise ConfigError(f"{key}: must be one of {', '.join(self.choices)}; got {value!r}")
+            raise ConfigError(f"{key}: must be one of {', '.join(self.choices)}; got {excerpt(value)}")
         return value
 
 
@@ -83,7 +92,7 @@ class Flag:
 
     def check(self, key: str, value: Any) -> bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+            raise ConfigError(f"{key}: expected true or false, got {excerpt(value)}")
         return value
 
 
@@ -96,7 +105,7 @@ class NumberList:
 
     def check(self, key: str, value: Any) -> tuple:
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key}: expected a list of numbers, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{key}: expected a list of numbers, got {type(value).__name__} {excerpt(value)}")
         if len(value) < self.min_len or (self.max_len is not None and len(value) > self.max_len):
             span = f"{self.min_len}..{self.max_len}" if self.max_len is not None else f">= {self.min_len}"
             raise ConfigError(f"{key}: expected {span} items, got {len(value)}")
@@ -114,12 +123,13 @@ class Section:
     def check(self, key: str, value: Any) -> dict:
         where = key or "top level"
         if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}: expected a mapping of keys, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{where}: expected a mapping of keys, got {type(value).__name__} {excerpt(value)}")
         known = set(self.fields) | set(self.optional)
         for name in value:
             if name not in known:
-                hint = _closest(str(name), known)
-                raise ConfigError(f"{_join(key, str(name))}: unknown key{hint}")
+                shown = _key_name(name)
+                hint = _closest(shown, known)
+                raise ConfigError(f"{_join(key, shown)}: unknown key{hint}")
         out = {}
         for name, spec in self.fields.items():
             if name not in value:
@@ -134,6 +144,13 @@ def _join(prefix: str, name: str) -> str:
     return f"{prefix}.{name}" if prefix else name
 
 
+def _key_name(name: Any) -> str:
+    """A key as it may appear in a message: plain if short printable text, else a short escaped excerpt."""
+    if isinstance(name, str) and len(name) <= 40 and name.isprintable():
+        return name
+    return excerpt(name, 40)
+
+
 def _closest(name: str, known: set[str]) -> str:
     import difflib
 
@@ -141,20 +158,77 @@ def _closest(name: str, known: set[str]) -> str:
     return f" (did you mean '{match[0]}'?)" if match else f" (known keys: {', '.join(sorted(known))})"
 
 
+class _ConfigLoader(yaml.SafeLoader):
+    """PyYAML's safe loader for configuration: no anchors or aliases, bounded nesting, node count and integers.
+
+    Aliases are what makes a few-kB "billion laughs" document expand to gigabytes; a configuration file has no
+    use for them, so they are refused outright rather than capped. Nesting is bounded before the composer's
+    recursion (three Python frames per level) can hit the interpreter's limit.
+    """
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._nodes = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent):
+            raise _Refused("aliases (*name) are not allowed in configuration files", event.start_mark)
+        if getattr(event, "anchor", None) is not None:
+            raise _Refused("anchors (&name) are not allowed in configuration files", event.start_mark)
+        self._nodes += 1
+        if self._nodes > MAX_CONFIG_NODES:
+            raise _Refused(f"more than {MAX_CONFIG_NODES} keys, values and items", event.start_mark)
+        if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            if self._depth >= MAX_CONFIG_DEPTH:
+                raise _Refused(f"nested deeper than {MAX_CONFIG_DEPTH} levels", event.start_mark)
+            self._depth += 1
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self._depth -= 1
+        return super().compose_node(parent, index)
+
+    def construct_yaml_int(self, node: Any) -> int:
+        digits = sum(ch.isdigit() for ch in str(node.value))
+        if digits > MAX_INT_DIGITS:
+            raise _Refused(f"integer with {digits} digits (at most {MAX_INT_DIGITS})", node.start_mark)
+        return super().construct_yaml_int(node)
+
+
+_ConfigLoader.add_constructor("tag:yaml.org,2002:int", _ConfigLoader.construct_yaml_int)
+
+
+class _Refused(yaml.YAMLError):
+    def __init__(self, problem: str, mark: Any) -> None:
+        super().__init__(problem)
+        self.problem = problem
+        self.problem_mark = mark
+
+
 def read_yaml(path: str | Path) -> Any:
+    """Parse a configuration file: a regular file of at most ``MAX_CONFIG_BYTES``, UTF-8, no aliases/anchors,
+    nesting at most ``MAX_CONFIG_DEPTH``, at most ``MAX_CONFIG_NODES`` nodes. Any problem: a one-line ``ConfigError``.
+    Worst case about half a second of parsing on a 2020s x86 core."""
     path = Path(path)
+    raw = read_bounded(path, max_bytes=MAX_CONFIG_BYTES, what="configuration file", error=ConfigError)
+    text = decode_utf8(raw, path, what="configuration file", error=ConfigError)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: configuration file not found") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read configuration file ({exc.strerror})") from None
-    try:
-        return yaml.safe_load(text)
+        loader = _ConfigLoader(text)
+        try:
+            return loader.get_single_data()
+        finally:
+            loader.dispose()
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"{path}: not valid YAML{where}: {short_text(problem)}") from None
+    except (ValueError, TypeError, OverflowError) as exc:  # e.g. a date like 2024-13-45 (constructors raise these)
+        raise ConfigError(f"{path}: not valid YAML: {short_text(str(exc))}") from None
+    except RecursionError:  # defence in depth: the depth bound above should make this unreachable
+        raise ConfigError(f"{path}: not valid YAML: nested too deeply") from None
 
 
 def validate(document: Any, schema: Section, source: str, prefix: str = "") -> dict:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import logging
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -130,7 +131,7 @@ def test_round_trip_property(rows) -> None:
             w.write(t, fid, data, channel=ch)
     assert not buf.closed  # a stream passed in is left open
     buf.seek(0)
-    reader = read_log(buf)
+    reader = read_log(buf, max_jump=math.inf, reorder_tolerance=math.inf)  # random stamps: time rule off
     got = list(reader)
     assert reader.malformed == 0
     assert len(got) == len(rows)

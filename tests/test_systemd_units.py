@@ -219,3 +219,59 @@ def test_systemd_analyze_verify(tmp_path):
     )
     output = (proc.stdout + proc.stderr).strip()
     assert proc.returncode == 0 and output == "", f"systemd-analyze verify (stubbed: {replaced}):\n{output}"
+
+
+LINK_UNITS = ("ptw-rt-can0.service", "ptw-rt-vcan0.service")
+
+
+@pytest.mark.parametrize("name", LINK_UNITS)
+def test_link_units_hardened(units, name):
+    """The CAN link units run ip(8) unprivileged with CAP_NET_ADMIN alone, sandboxed like the daemon."""
+    service = units[name]["Service"]
+    assert _one(service, "User") not in ("", "root", "0")
+    assert _one(service, "AmbientCapabilities").split() == ["CAP_NET_ADMIN"]
+    assert _one(service, "CapabilityBoundingSet").split() == ["CAP_NET_ADMIN"]
+    for key in (
+        "NoNewPrivileges",
+        "ProtectHome",
+        "PrivateTmp",
+        "PrivateDevices",
+        "ProtectKernelModules",
+        "ProtectKernelTunables",
+        "ProtectKernelLogs",
+        "ProtectControlGroups",
+        "ProtectClock",
+        "RestrictNamespaces",
+        "RestrictSUIDSGID",
+        "MemoryDenyWriteExecute",
+        "LockPersonality",
+    ):
+        assert _one(service, key) == "yes", key
+    assert _one(service, "ProtectSystem") == "strict"
+    assert set(_one(service, "RestrictAddressFamilies").split()) == {"AF_NETLINK", "AF_UNIX"}
+    assert _one(service, "SystemCallFilter") == "@system-service"
+    # a namespace of its own would configure that namespace's links, not the host's
+    assert service.get("PrivateNetwork", ["no"])[-1] != "yes"
+    assert service.get("PrivateUsers", ["no"])[-1] != "yes"
+    assert not any("modprobe" in v for v in service["ExecStart"]), "the kernel autoloads vcan (rtnl-link-vcan)"
+
+
+def _exposure(analyze: str, unit: Path) -> float | None:
+    proc = subprocess.run(
+        [analyze, "security", "--offline=yes", "--no-pager", str(unit)], capture_output=True, text=True, timeout=30
+    )
+    m = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", proc.stdout + proc.stderr)
+    return float(m.group(1)) if m else None
+
+
+@pytest.mark.parametrize("name", UNITS)
+def test_systemd_analyze_security_exposure(name):
+    """`systemd-analyze security --offline=yes` (systemd >= 250): every unit at the daemon's level, at most 2.0
+    (systemd/README.md lists the figures)."""
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        pytest.skip("systemd-analyze not found")
+    score = _exposure(analyze, SYSTEMD_DIR / name)
+    if score is None:
+        pytest.skip("this systemd-analyze has no offline security analysis")
+    assert score <= 2.0, f"{name}: exposure {score}"

@@ -2,8 +2,30 @@
 
 Written exactly as can-utils' ``candump -L`` does (10-digit zero-padded seconds, 6 decimals, 3 hex digits for
 11-bit ids, 8 for 29-bit ids, uppercase payload), so ``canplayer``, python-can's ``can.LogReader`` and
-``cantools decode`` read our logs. Reading is tolerant: malformed lines are counted, logged with file and line
-number, and skipped; the reader never raises on content (only if the file cannot be opened).
+``cantools decode`` read our logs. Reading is tolerant: bad lines are counted (per reason), logged with file and
+line number, and skipped; the reader never raises on content (only if the file cannot be opened: missing, not a
+regular file, larger than ``MAX_LOG_BYTES``).
+
+A log is untrusted data, its time stamps included. Per line (``parse_line``): at most 10 integer and 9
+fractional digits, no sign, not after 2200-01-01 (``MAX_TIMESTAMP``); a line longer than ``MAX_LINE_CHARS`` is
+skipped without being held in memory. Across lines (``CandumpReader``), the time rule:
+
+* A frame is *consistent* with a time reference r when ``r - reorder_tolerance <= t <= r + max_jump``.
+* Frames consistent with the newest accepted stamp are accepted at once (the fast path). One stamped up to
+  ``reorder_tolerance`` (default 20 ms, two cycles) before it is accepted as is and counted in ``reordered``:
+  a consumer clocked by the log gives it to the current cycle, as the live bus would a late frame.
+* Any other frame is a *suspect*: it starts (or extends) a candidate time base. A candidate that collects
+  ``confirm`` (default 8) mutually consistent frames before the accepted base collects ``confirm`` more becomes
+  the time base: a real gap or a jump back (concatenated logs), counted in ``discontinuities`` with its line,
+  and its frames are passed on. Otherwise its frames are rejected: ``out_of_order`` if stamped before the base
+  (stale data must not be fed as if fresh), ``time_jump`` if after (a stray far-future stamp).
+* At the start there is no base yet: the first candidate to collect ``confirm`` frames becomes it, so a stray
+  ``(0000000000.000001)`` line before a 1.7e9 log is rejected. A log too short to confirm anything is taken
+  as it is (its longest candidate); at the end of a log an unconfirmed candidate is rejected.
+
+So the frames passed on move forward in time, except by at most ``reorder_tolerance``, or at a counted
+discontinuity. ``max_jump=reorder_tolerance=math.inf`` turns the rule off (the frames in file order).
+Rejections are counted in ``rejected`` by reason (``REJECT_REASONS``); ``malformed`` is their sum.
 """
 
 from __future__ import annotations
@@ -14,9 +36,18 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
-from typing import IO, NamedTuple
+from typing import IO, Any, NamedTuple
+
+from ptw_rt.errors import UserFacingError
+from ptw_rt.io.untrusted import open_binary
 
 __all__ = [
+    "MAX_LINE_CHARS",
+    "MAX_LOG_BYTES",
+    "MAX_TIMESTAMP",
+    "REJECT_REASONS",
+    "BadTimestampError",
+    "CandumpFileError",
     "CandumpReader",
     "CandumpWriter",
     "LogFrame",
@@ -30,8 +61,22 @@ log = logging.getLogger(__name__)
 _STD_MAX = 0x7FF
 _EXT_MAX = 0x1FFFFFFF
 _MAX_DATA = 8
-_TIMESTAMP_RE = re.compile(r"\(([0-9]+(?:\.[0-9]*)?)\)")
+_TIMESTAMP_RE = re.compile(r"\(([0-9]{1,10}(?:\.[0-9]{0,9})?)\)")
 _HEX_RE = re.compile(r"[0-9A-Fa-f]*")
+MAX_TIMESTAMP = 7258118400.0  # 2200-01-01T00:00:00Z: later stamps are absurd
+MAX_LINE_CHARS = 256  # a candump -L line is at most ~70 characters
+MAX_LOG_BYTES = 16 << 30  # ~12 days of the four sensor messages at their rates
+MAX_RECORDED = 1000  # line numbers / reasons kept in memory (the counts are exact)
+REJECT_REASONS = ("malformed", "too_long", "bad_timestamp", "out_of_order", "time_jump")
+_READ_CHUNK = 1 << 20
+
+
+class BadTimestampError(ValueError):
+    """``parse_line``: the time stamp is unparseable or absurd (a ``ValueError``)."""
+
+
+class CandumpFileError(UserFacingError):
+    """The log cannot be opened: not a regular file, too large, unreadable."""
 
 
 class LogFrame(NamedTuple):
@@ -71,7 +116,8 @@ def parse_line(line: str, line_no: int = 0) -> LogFrame:
 
     Accepts an optional trailing ``R``/``T`` (rx/tx) field, 3-digit (11-bit) and 8-digit (29-bit) ids and
     remote frames (``123#R``, ``123#R8``: empty data, ``is_remote=True``). CAN FD (``##``) and error
-    frames are rejected.
+    frames are rejected; so is a time stamp with more than 10 + 9 digits, a sign, or after 2200
+    (``BadTimestampError``, a ValueError).
     """
     fields = line.split()
     if not fields:
@@ -83,8 +129,10 @@ def parse_line(line: str, line_no: int = 0) -> LogFrame:
     ts_s, channel, frame = fields
     m = _TIMESTAMP_RE.fullmatch(ts_s)
     if m is None:
-        raise ValueError(f"bad timestamp {ts_s!r}")
+        raise BadTimestampError(f"bad timestamp {ts_s[:40]!r}")
     timestamp = float(m.group(1))
+    if timestamp > MAX_TIMESTAMP:
+        raise BadTimestampError(f"timestamp {ts_s!r} after 2200-01-01")
     id_s, sep, data_s = frame.partition("#")
     if not sep:
         raise ValueError("missing '#' between id and data")
@@ -172,60 +220,257 @@ class CandumpWriter:
 
 
 class CandumpReader(Iterator[LogFrame]):
-    """Iterator over the frames of a candump ``-L`` log; skips and counts malformed lines.
+    """Iterator over the frames of a candump ``-L`` log; skips and counts bad lines (module docstring: the rules).
 
-    After (or during) iteration: ``frames`` (good frames yielded), ``malformed`` (count),
-    ``malformed_lines`` (their 1-based line numbers) and ``problems`` ((line_no, reason) pairs).
-    A warning naming the file and line is logged for the first ``max_warnings`` malformed lines,
-    then one summary warning at the end.
+    After (or during) iteration: ``frames`` (good frames yielded), ``malformed`` (lines skipped, every reason),
+    ``rejected`` (reason -> count, reasons of ``REJECT_REASONS``), ``reordered`` (accepted frames stamped
+    slightly before an earlier one), ``discontinuities`` (count) and ``discontinuity_lines`` ((line_no, from,
+    to) of each confirmed time-base change), ``malformed_lines`` and ``problems`` ((line_no, reason) pairs; the
+    first ``MAX_RECORDED`` of each). A warning naming the file and line is logged for the first
+    ``max_warnings`` bad lines, then one summary warning at the end.
     """
 
-    def __init__(self, source: str | Path | IO[str], *, max_warnings: int = 20) -> None:
+    def __init__(
+        self,
+        source: str | Path | IO[str],
+        *,
+        max_warnings: int = 20,
+        max_jump: float = 1.0,
+        reorder_tolerance: float = 0.02,
+        confirm: int = 8,
+        max_bytes: int = MAX_LOG_BYTES,
+    ) -> None:
+        self._fh: IO[bytes] | None = None
         if isinstance(source, (str, Path)):
             path = Path(source)
-            if not path.is_file():
-                raise FileNotFoundError(f"candump log not found: {path}")
             self.name = str(path)
-            self._path: Path | None = path
+            try:
+                self._fh = open_binary(path, max_bytes=max_bytes, what="candump log", error=CandumpFileError)
+            except CandumpFileError as exc:
+                if str(exc).endswith("not found"):
+                    raise FileNotFoundError(f"candump log not found: {path}") from None
+                raise
             self._stream: IO[str] | None = None
         else:
             self.name = getattr(source, "name", "<stream>")
-            self._path = None
             self._stream = source
         self.max_warnings = max_warnings
+        self.max_jump = float(max_jump)
+        self.reorder_tolerance = float(reorder_tolerance)
+        self.confirm = max(1, int(confirm))
         self.frames = 0
         self.malformed = 0
+        self.rejected = dict.fromkeys(REJECT_REASONS, 0)
+        self.reordered = 0
+        self.discontinuities = 0
+        self.discontinuity_lines: list[tuple[int, float, float]] = []
         self.malformed_lines: list[int] = []
         self.problems: list[tuple[int, str]] = []
+        self._last: float | None = None  # newest stamp of the accepted time base (None: none confirmed yet)
+        self._chains: list[list] = []  # candidate time bases: [frames, newest stamp]
+        self._base_votes = 0  # frames accepted on the base since the oldest pending candidate started
         self._gen = self._generate()
 
-    def _generate(self) -> Iterator[LogFrame]:
-        if self._path is not None:
-            with open(self._path, encoding="utf-8", errors="replace") as fh:
-                yield from self._parse(fh)
+    # ------------------------------------------------------------------ lines
+
+    def _blocks(self) -> Iterator[list[str]]:
+        """Lists of lines (no newline), read in large chunks; a line longer than ``MAX_LINE_CHARS`` is never
+        held whole: it comes as one line of ``MAX_LINE_CHARS + 1`` characters, which the parser rejects."""
+        if self._fh is not None:
+            fh = self._fh
+
+            def read() -> str:
+                return fh.read(_READ_CHUNK).decode("utf-8", "replace")  # may split a character: a bad line anyway
+
         else:
             assert self._stream is not None
-            yield from self._parse(self._stream)
+            stream = self._stream
 
-    def _parse(self, lines: IO[str]) -> Iterator[LogFrame]:
-        for line_no, line in enumerate(lines, start=1):
-            try:
-                frame = parse_line(line, line_no)
-            except ValueError as exc:
-                self._bad(line_no, str(exc), line)
+            def read() -> str:
+                return stream.read(_READ_CHUNK)
+
+        rest = ""
+        skipping = False  # inside an over-long line: drop up to its newline
+        while True:
+            chunk = read()
+            if not chunk:
+                break
+            cut = chunk.rfind("\n")
+            if cut < 0:  # no line ends in this chunk
+                if not skipping:
+                    rest += chunk
+                    if len(rest) > MAX_LINE_CHARS:
+                        rest, skipping = rest[: MAX_LINE_CHARS + 1], True
                 continue
-            self.frames += 1
-            yield frame
+            lines = chunk[:cut].split("\n")
+            if skipping:
+                lines[0] = rest  # the tail of the over-long line is dropped; the line itself counts once
+                skipping = False
+            elif rest:
+                lines[0] = rest + lines[0]
+            rest = chunk[cut + 1 :]
+            if len(rest) > MAX_LINE_CHARS:
+                rest, skipping = rest[: MAX_LINE_CHARS + 1], True
+            yield lines
+        if rest:
+            yield [rest]
+
+    def _generate(self) -> Iterator[LogFrame]:
+        try:
+            yield from self._parse(self._blocks())
+        finally:
+            if self._fh is not None:
+                self._fh.close()
+
+    # ------------------------------------------------------------------ frames
+
+    def _parse(self, blocks: Iterator[list[str]]) -> Iterator[LogFrame]:
+        tol = self.reorder_tolerance
+        jump = self.max_jump
+        suspect = self._suspect
+        line_no = 0
+        last = self._last
+        for block in blocks:
+            for line in block:
+                line_no += 1
+                if len(line) > MAX_LINE_CHARS:
+                    self._bad(line_no, f"line longer than {MAX_LINE_CHARS} characters", line, "too_long")
+                    continue
+                try:
+                    frame = parse_line(line, line_no)
+                except BadTimestampError as exc:
+                    self._bad(line_no, str(exc), line, "bad_timestamp")
+                    continue
+                except ValueError as exc:
+                    self._bad(line_no, str(exc), line, "malformed")
+                    continue
+                if last is not None and not self._chains:  # the fast path: no candidate pending
+                    d = frame.timestamp - last
+                    if 0.0 <= d <= jump:
+                        last = frame.timestamp
+                        self.frames += 1
+                        yield frame
+                        continue
+                    if -tol <= d < 0.0:
+                        self.reordered += 1
+                        self.frames += 1
+                        yield frame
+                        continue
+                self._last = last
+                out = suspect(frame)
+                last = self._last
+                if out:
+                    self.frames += len(out)
+                    yield from out
+        out = self._finish()
+        self.frames += len(out)
+        yield from out
         hidden = self.malformed - self.max_warnings
         if hidden > 0:
-            log.warning("%s: %d more malformed candump lines skipped (%d in total)", self.name, hidden, self.malformed)
+            log.warning("%s: %d more bad candump lines skipped (%d in total)", self.name, hidden, self.malformed)
+        if self.discontinuities > self.max_warnings:
+            log.warning("%s: %d discontinuities of the time stamps in total", self.name, self.discontinuities)
 
-    def _bad(self, line_no: int, reason: str, line: str) -> None:
+    def _consistent(self, t: float, reference: float) -> bool:
+        return reference - self.reorder_tolerance <= t <= reference + self.max_jump
+
+    def _suspect(self, frame: LogFrame) -> list[LogFrame]:
+        """The slow path: a frame off the accepted time base, or any frame before a base is confirmed."""
+        t = frame.timestamp
+        last = self._last
+        if last is not None and self._consistent(t, last):
+            if t < last:
+                self.reordered += 1
+            else:
+                self._last = t
+            self._base_votes += 1
+            if self._base_votes >= self.confirm:  # the base outlasted every candidate: they were outliers
+                self._reject_chains(self._chains)
+            return [frame]
+        for chain in self._chains:
+            if self._consistent(t, chain[1]):
+                chain[0].append(frame)
+                chain[1] = max(chain[1], t)
+                if len(chain[0]) < self.confirm:
+                    return []
+                return self._adopt(chain)
+        if len(self._chains) >= 3:  # bounded work: drop the weakest candidate
+            weakest = min(self._chains, key=lambda c: len(c[0]))
+            self._reject_chains([weakest])
+        self._chains.append([[frame], t])
+        return []
+
+    def _adopt(self, chain: list) -> list[LogFrame]:
+        """``chain`` becomes the time base; the other candidates are rejected."""
+        if self._last is not None:
+            self.discontinuities += 1
+            first = chain[0][0]
+            if len(self.discontinuity_lines) < MAX_RECORDED:
+                self.discontinuity_lines.append((first.line_no, self._last, first.timestamp))
+            if self.discontinuities > self.max_warnings:
+                return self._take(chain)
+            log.warning(
+                "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f); taken as a discontinuity of the log",
+                self.name,
+                first.line_no,
+                first.timestamp - self._last,
+                self._last,
+                first.timestamp,
+            )
+        return self._take(chain)
+
+    def _take(self, chain: list) -> list[LogFrame]:
+        self._reject_chains([c for c in self._chains if c is not chain])
+        self._chains = []
+        self._last = chain[1]
+        self._base_votes = 0
+        return chain[0]
+
+    def _reject_chains(self, chains: list[list]) -> None:
+        last = self._last
+        for chain in chains:
+            for frame in chain[0]:
+                if last is not None and frame.timestamp < last:
+                    reason = f"out of order: {last - frame.timestamp:.3f} s before an earlier line, not confirmed"
+                    kind = "out_of_order"
+                else:
+                    if last is None:
+                        reason = f"time stamp {frame.timestamp:.6f} at the log's start not confirmed by the next lines"
+                    else:
+                        reason = (
+                            f"time stamp {frame.timestamp:.6f} jumps {frame.timestamp - last:+.3f} s and is not "
+                            "confirmed by the next lines"
+                        )
+                    kind = "time_jump"
+                self._bad(frame.line_no, reason, "", kind)
+        self._chains = [c for c in self._chains if not any(c is d for d in chains)]
+        if not self._chains:
+            self._base_votes = 0
+
+    def _finish(self) -> list[LogFrame]:
+        """End of the log: a log too short to confirm a base is taken as it is; other candidates are rejected."""
+        if not self._chains:
+            return []
+        if self._last is None:
+            longest = max(self._chains, key=lambda c: len(c[0]))
+            self._reject_chains([c for c in self._chains if c is not longest])
+            self._chains = []
+            self._last = longest[1]
+            return longest[0]
+        self._reject_chains(list(self._chains))
+        return []
+
+    def _bad(self, line_no: int, reason: str, line: str, kind: str = "malformed") -> None:
         self.malformed += 1
-        self.malformed_lines.append(line_no)
-        self.problems.append((line_no, reason))
+        self.rejected[kind] += 1
+        if len(self.problems) < MAX_RECORDED:
+            self.malformed_lines.append(line_no)
+            self.problems.append((line_no, reason))
         if self.malformed <= self.max_warnings:
-            log.warning("%s:%d: skipping malformed candump line (%s): %.80r", self.name, line_no, reason, line.rstrip())
+            if line:
+                log.warning("%s:%d: skipping candump line (%s): %.80r", self.name, line_no, reason, line.rstrip())
+            else:
+                log.warning("%s:%d: skipping candump line (%s)", self.name, line_no, reason)
 
     def __iter__(self) -> CandumpReader:
         return self
@@ -236,6 +481,8 @@ class CandumpReader(Iterator[LogFrame]):
     def close(self) -> None:
         """Stop reading and close the file (if opened here)."""
         self._gen.close()
+        if self._fh is not None:
+            self._fh.close()
 
     def __enter__(self) -> CandumpReader:
         return self
@@ -246,10 +493,12 @@ class CandumpReader(Iterator[LogFrame]):
         self.close()
 
 
-def read_log(source: str | Path | IO[str], *, max_warnings: int = 20) -> CandumpReader:
-    """Frames of a candump ``-L`` log (path or text stream), malformed lines skipped and counted.
+def read_log(source: str | Path | IO[str], *, max_warnings: int = 20, **rules: Any) -> CandumpReader:
+    """Frames of a candump ``-L`` log (path or text stream), bad lines skipped and counted.
 
-    Returns a ``CandumpReader`` (an ``Iterator[LogFrame]``) exposing ``malformed`` / ``malformed_lines``.
-    Raises FileNotFoundError if a path does not exist; never raises on file content.
+    Returns a ``CandumpReader`` (an ``Iterator[LogFrame]``) exposing ``malformed`` / ``rejected`` / ... ;
+    ``rules``: ``max_jump``, ``reorder_tolerance``, ``confirm``, ``max_bytes``. Raises FileNotFoundError if a
+    path does not exist, ``CandumpFileError`` (one line, exit code 2 in the CLI) if it is not a regular file
+    or too large; never raises on file content.
     """
-    return CandumpReader(source, max_warnings=max_warnings)
+    return CandumpReader(source, max_warnings=max_warnings, **rules)

@@ -6,8 +6,17 @@ never a half-written one: ``save_state`` writes a temporary file in the same dir
 fsyncs it, ``os.replace``-s it over the target and fsyncs the directory.
 
 ``load_state`` never raises for bad content: a missing, unreadable, corrupt or foreign file, a file
-written for another configuration (config hash mismatch) or one holding non-finite or non-positive
-values gives ``(None, reason)`` and the daemon starts from the configured nominal stiffnesses.
+written for another configuration (config hash mismatch) or one holding a value outside its bounds gives
+``(None, reason)`` and the daemon starts from the configured nominal stiffnesses. The file is untrusted
+(``ptw_rt.io.untrusted``): only a regular file is read (a FIFO at the path never blocks start-up), at most
+``MAX_STATE_BYTES``, nesting at most ``MAX_STATE_DEPTH`` levels, checked before ``json.loads`` recurses.
+
+Validation is driven by ``STATE_FIELDS``, one row per learned value (its JSON object and key, unit, shape,
+whether it must be positive). Every value must be a finite number (positive where the row says so) and lie
+within the bounds the caller passes (``stiffness_bounds``: the projection bounds of the design, i.e. what the
+adaptive observer can reach); one value out of bounds rejects the whole file, because clipping it would save
+the clipped value back at shutdown as if it had been learned. ``restore_state`` is the start-up entry point:
+it also removes orphan temporary files of saves that were killed, and says how loudly to log the outcome.
 
 File content (format ``ptw-rt-state``, version 1)::
 
@@ -19,8 +28,10 @@ File content (format ``ptw-rt-state``, version 1)::
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
+import stat
 import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -28,21 +39,61 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from ptw_rt.io.untrusted import check_nesting, decode_utf8, excerpt, read_bounded
+
 __all__ = [
     "STATE_FORMAT",
     "STATE_VERSION",
     "STIFFNESS_KEYS",
+    "STATE_FIELDS",
     "LoadedState",
+    "StateField",
+    "StateLoad",
     "load_state",
+    "remove_orphan_temp_files",
+    "restore_state",
     "save_state",
+    "stiffness_bounds",
 ]
 
 STATE_FORMAT = "ptw-rt-state"
 STATE_VERSION = 1
 # order of the ``stiffness`` sequence: C_af, C_gf, C_ar, C_gr (N/rad)
 STIFFNESS_KEYS = ("front_cornering", "front_camber", "rear_cornering", "rear_camber")
-_MAX_BYTES = 1 << 20  # a state file is a few hundred bytes; anything this large is not ours
+MAX_STATE_BYTES = 64 * 1024  # a state file is a few hundred bytes; anything this large is not ours
+MAX_STATE_DEPTH = 8  # JSON nesting (today 2: the document and its "stiffness" object)
 _TMP_SUFFIX = ".tmp"
+_BOUND_TOLERANCE = 1e-9  # relative: nominal + deviation - nominal may exceed the bound by a rounding error
+
+
+@dataclass(frozen=True)
+class StateField:
+    """One learned value of the state file: ``doc[group][key]``, a number or a nested list of ``shape``."""
+
+    group: str
+    key: str
+    unit: str
+    shape: tuple[int, ...] = ()
+    positive: bool = True  # a stiffness is > 0; a covariance's off-diagonal terms are not
+
+    @property
+    def name(self) -> str:
+        return f"{self.group}.{self.key}"
+
+
+# The learned values: what load_state checks (bounds come from the caller, keyed by StateField.name).
+STATE_FIELDS: tuple[StateField, ...] = tuple(StateField("stiffness", key, "N/rad") for key in STIFFNESS_KEYS)
+
+Bounds = Mapping[str, tuple[float, float]]
+
+
+def stiffness_bounds(nominal: Sequence[float], deviation_bound: Sequence[float]) -> dict[str, tuple[float, float]]:
+    """Bounds of the four stiffnesses: nominal +- the adaptive observer's projection bound (design file's
+    ``ad_theta_nominal`` and ``ad_theta_bound``), the only values the observer can ever have learned."""
+    return {
+        f"stiffness.{key}": (float(n) - abs(float(b)), float(n) + abs(float(b)))
+        for key, n, b in zip(STIFFNESS_KEYS, nominal, deviation_bound, strict=True)
+    }
 
 
 @dataclass(frozen=True)
@@ -53,6 +104,17 @@ class LoadedState:
     config_hash: str
     saved_at: str
     extra: dict[str, Any] = field(default_factory=dict)
+    values: dict[str, Any] = field(default_factory=dict)  # every STATE_FIELDS value by StateField.name
+
+
+@dataclass(frozen=True)
+class StateLoad:
+    """What ``restore_state`` found: the state (or None), why, how loudly to log it, orphans removed."""
+
+    state: LoadedState | None
+    reason: str
+    level: int  # logging.INFO (restored, or no file yet) or logging.WARNING (a file was there and refused)
+    removed_temp_files: tuple[str, ...] = ()
 
 
 def _is_positive_finite(v: object) -> bool:
@@ -137,58 +199,139 @@ def save_state(
     return path
 
 
-def load_state(path: Path | str, config_hash: str) -> tuple[LoadedState | None, str]:
+class _RefusedError(ValueError):
+    pass
+
+
+def _check_value(spec: StateField, value: Any, bounds: Bounds | None) -> str | None:
+    """None if ``value`` is acceptable for ``spec``, else a short reason."""
+    if spec.shape:
+        if not isinstance(value, list) or len(value) != spec.shape[0]:
+            return f"expected a list of {spec.shape[0]}, got {excerpt(value, 40)}"
+        inner = StateField(spec.group, spec.key, spec.unit, spec.shape[1:], spec.positive)
+        for item in value:
+            problem = _check_value(inner, item, bounds)
+            if problem:
+                return problem
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return f"not a number: {excerpt(value, 40)}"
+    try:
+        v = float(value)
+    except OverflowError:  # an int beyond float range
+        return f"out of range: {excerpt(value, 40)}"
+    if not math.isfinite(v):
+        return f"non-finite: {v!r}"
+    if spec.positive and v <= 0:
+        return f"non-positive: {v!r}"
+    if bounds is not None and spec.name in bounds:
+        lo, hi = bounds[spec.name]
+        slack = _BOUND_TOLERANCE * max(abs(lo), abs(hi))
+        if not lo - slack <= v <= hi + slack:
+            return f"{v:.6g} {spec.unit} outside the learnable range [{lo:.6g}, {hi:.6g}]"
+    return None
+
+
+def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None) -> tuple[LoadedState | None, str]:
     """Read a state file written by ``save_state`` for the configuration ``config_hash``.
 
     Returns ``(LoadedState, "ok")``, or ``(None, reason)`` with a one-line human-readable reason if the
-    file is missing, unreadable, not JSON, of another format/version, written for another configuration
-    or holds non-finite or non-positive stiffness values. Never raises for bad file content.
+    file is missing, not a regular file, too large or too deeply nested, unreadable, not JSON, of another
+    format/version, written for another configuration or holds a value that is not a finite (positive)
+    number within ``bounds`` (``StateField.name`` -> (low, high); see ``stiffness_bounds``). Never raises for
+    bad file content.
     """
     path = Path(path)
     try:
-        with open(path, "rb") as f:
-            raw = f.read(_MAX_BYTES + 1)
-    except FileNotFoundError:
-        return None, f"no state file at {path}"
-    except OSError as exc:
-        return None, f"state file {path} unreadable: {exc.strerror or exc}"
-    if len(raw) > _MAX_BYTES:
-        return None, f"state file {path} too large (> {_MAX_BYTES} bytes)"
+        raw = read_bounded(path, max_bytes=MAX_STATE_BYTES, what="state file", error=_RefusedError)
+    except _RefusedError as exc:
+        if str(exc).endswith(" not found"):
+            return None, f"no state file at {path}"
+        return None, f"state file {path} {str(exc).removeprefix(f'{path}: state file ')}"
     try:
-        doc = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as exc:  # JSONDecodeError is a ValueError
-        return None, f"state file {path} is not valid JSON: {exc}"
+        text = decode_utf8(raw, path, what="state file", error=_RefusedError)
+        check_nesting(text, MAX_STATE_DEPTH, path, what="state file", error=_RefusedError)
+    except _RefusedError as exc:
+        detail = str(exc).removeprefix(f"{path}: state file ")
+        return None, f"state file {path} is not valid JSON: {detail}"
+    try:
+        doc = json.loads(text)
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError is a ValueError; so is an int too long
+        return None, f"state file {path} is not valid JSON: {excerpt(str(exc), 80)}"
     if not isinstance(doc, dict):
         return None, f"state file {path} is not a JSON object"
     if doc.get("format") != STATE_FORMAT:
-        return None, f"state file {path} has wrong format {doc.get('format')!r} (expected {STATE_FORMAT!r})"
+        return None, f"state file {path} has wrong format {excerpt(doc.get('format'), 40)} (expected {STATE_FORMAT!r})"
     version = doc.get("version")
     if version != STATE_VERSION or isinstance(version, bool):
-        return None, f"state file {path} has unsupported version {version!r} (expected {STATE_VERSION})"
+        return None, f"state file {path} has unsupported version {excerpt(version, 20)} (expected {STATE_VERSION})"
     saved_hash = doc.get("config_hash")
     if not isinstance(saved_hash, str):
         return None, f"state file {path} has no config_hash"
     if saved_hash != config_hash:
         return None, (
-            f"state file {path} was saved for another configuration (config hash {saved_hash[:12]}, "
+            f"state file {path} was saved for another configuration (config hash {excerpt(saved_hash[:12], 16)}, "
             f"current {str(config_hash)[:12]})"
         )
-    stiff = doc.get("stiffness")
-    if not isinstance(stiff, dict):
-        return None, f"state file {path} has no stiffness object"
-    missing = [k for k in STIFFNESS_KEYS if k not in stiff]
+    values: dict[str, Any] = {}
+    for group in dict.fromkeys(spec.group for spec in STATE_FIELDS):
+        if not isinstance(doc.get(group), dict):
+            return None, f"state file {path} has no {group} object"
+    missing = [spec.key for spec in STATE_FIELDS if spec.key not in doc[spec.group]]
     if missing:
-        return None, f"state file {path} lacks stiffness values: {', '.join(missing)}"
-    bad = [k for k in STIFFNESS_KEYS if not _is_positive_finite(stiff[k])]
-    if bad:
-        shown = ", ".join(f"{k}={stiff[k]!r}" for k in bad)
-        return None, f"state file {path} has non-finite or non-positive stiffness: {shown}"
+        return None, f"state file {path} lacks {STATE_FIELDS[0].group} values: {', '.join(missing)}"
+    problems = []
+    for spec in STATE_FIELDS:
+        value = doc[spec.group][spec.key]
+        problem = _check_value(spec, value, bounds)
+        if problem:
+            problems.append(f"{spec.key} {problem}")
+        else:
+            values[spec.name] = value
+    if problems:
+        more = f" (and {len(problems) - 2} more)" if len(problems) > 2 else ""
+        return None, f"state file {path} refused whole, a learned value is invalid: {'; '.join(problems[:2])}{more}"
     saved_at = doc.get("saved_at")
     extra = doc.get("extra")
     state = LoadedState(
-        stiffness=tuple(float(stiff[k]) for k in STIFFNESS_KEYS),  # type: ignore[arg-type]
+        stiffness=tuple(float(values[f"stiffness.{k}"]) for k in STIFFNESS_KEYS),  # type: ignore[arg-type]
         config_hash=saved_hash,
-        saved_at=saved_at if isinstance(saved_at, str) else "",
+        saved_at=saved_at[:40] if isinstance(saved_at, str) else "",
         extra=extra if isinstance(extra, dict) else {},
+        values=values,
     )
     return state, "ok"
+
+
+def remove_orphan_temp_files(path: Path | str) -> list[Path]:
+    """Delete the temporary files ``save_state`` leaves behind when killed between create and rename.
+
+    Only names ``save_state`` creates (``.<name>.*.tmp`` next to ``path``), and only regular files (never
+    follows a symlink). Call at start-up, before any save can be running. Never raises.
+    """
+    path = Path(path)
+    removed = []
+    try:
+        candidates = list(path.parent.glob(f".{path.name}.*{_TMP_SUFFIX}"))
+    except OSError:
+        return removed
+    for tmp in candidates[:1000]:
+        try:
+            if stat.S_ISREG(os.lstat(tmp).st_mode):
+                os.unlink(tmp)
+                removed.append(tmp)
+        except OSError:
+            continue
+    return removed
+
+
+def restore_state(path: Path | str, config_hash: str, bounds: Bounds | None = None) -> StateLoad:
+    """Start-up read of the state file: orphan temp files removed, then ``load_state``.
+
+    ``level`` is INFO when the state was restored or there is no file yet, WARNING when a file was there and
+    was refused (the reason names why); the daemon then starts from the nominal stiffness.
+    """
+    removed = tuple(str(p) for p in remove_orphan_temp_files(path))
+    state, reason = load_state(path, config_hash, bounds)
+    quiet = state is not None or reason.startswith("no state file at ")
+    return StateLoad(state, reason, logging.INFO if quiet else logging.WARNING, removed)

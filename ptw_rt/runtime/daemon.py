@@ -49,7 +49,7 @@ from ptw_rt.core.layout import (
 )
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.dbc import DbcError
-from ptw_rt.io.state_file import load_state, save_state
+from ptw_rt.io.state_file import restore_state, save_state, stiffness_bounds
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.runtime.cycle import CycleRunner, build_runner
 from ptw_rt.runtime.logs import HealthSummary, RateLimitedLog, setup_logging
@@ -239,10 +239,16 @@ class Daemon:
         path = self.settings.runtime.get("state_file")
         if not path:
             return
-        state, reason = load_state(path, self.settings.config_hash)
+        design = self.runner.estimator.design
+        loaded = restore_state(
+            path, self.settings.config_hash, stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound)
+        )
+        if loaded.removed_temp_files:
+            log.info("removed %d orphan temporary state files", len(loaded.removed_temp_files))
+        state = loaded.state
         if state is None:
-            self.state_note = f"starting from nominal tyre stiffness: {reason}"
-            log.info(self.state_note)
+            self.state_note = f"starting from nominal tyre stiffness: {loaded.reason}"
+            log.log(loaded.level, self.state_note)
             return
         try:
             self.runner.estimator.restore_stiffness(state.stiffness)

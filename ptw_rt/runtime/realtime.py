@@ -25,6 +25,7 @@ import platform
 import resource
 from typing import Any
 
+from ptw_rt.io.untrusted import excerpt
 from ptw_rt.schema import ConfigError, Flag, Number, NumberList, Section
 
 __all__ = ["REALTIME_SCHEMA", "apply_realtime", "realtime_state", "restore_scheduling", "thread_scheduling"]
@@ -52,7 +53,7 @@ class _CpuList(NumberList):
     def check(self, key: str, value: Any) -> tuple:
         cpus = super().check(key, value)
         if len(set(cpus)) != len(cpus):
-            raise ConfigError(f"{key}: CPU numbers must be distinct, got {list(value)!r}")
+            raise ConfigError(f"{key}: CPU numbers must be distinct, got {excerpt(list(value))}")
         return cpus
 
 

@@ -1,0 +1,193 @@
+"""Reading files the product does not control: bounded, typed, never blocking, never a traceback.
+
+Every file ptw-rt reads (configuration YAML, design ``.npz``, state JSON, candump logs) may be hostile or simply
+wrong: a FIFO (opening it for reading would block until a writer appears), a device (``/dev/zero`` never ends),
+a directory, a 10 GB file, bytes that are not UTF-8, nesting deep enough to exhaust Python's recursion limit.
+The readers share these helpers so each case gets the same answer: one line naming the file and the problem,
+raised as the reader's own error class (``error=``), which the CLI prints with exit code 2.
+
+* ``open_regular``: ``os.open(O_RDONLY | O_NONBLOCK)`` (a FIFO opens at once instead of blocking), then
+  ``fstat`` on the open descriptor (no check-then-open race): anything but a regular file is refused, so is one
+  above the size limit.
+* ``read_bounded``: the whole file, at most ``max_bytes`` (a file growing while read is cut and refused).
+* ``decode_utf8``: strict UTF-8 with the line and column of the first bad byte.
+* ``check_nesting``: the bracket depth of JSON-like text, before a recursive parser sees it.
+* ``excerpt``: a short, escaped, single-line rendering of a bad value for an error message.
+"""
+
+from __future__ import annotations
+
+import os
+import reprlib
+import stat
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = [
+    "UntrustedFileError",
+    "check_nesting",
+    "decode_utf8",
+    "excerpt",
+    "file_kind",
+    "open_regular",
+    "read_bounded",
+    "short_text",
+]
+
+EXCERPT_CHARS = 60
+
+
+class UntrustedFileError(ValueError):
+    """Default error of these helpers when the caller names none (a ``ValueError``: bad input, not a bug)."""
+
+
+def file_kind(mode: int) -> str:
+    """Human name of a file type from ``st_mode``."""
+    for test, name in (
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISREG, "a regular file"),
+    ):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _size(n: int) -> str:
+    for unit, scale in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n} bytes"
+
+
+def open_regular(
+    path: str | Path, *, max_bytes: int, what: str = "file", error: type[Exception] = UntrustedFileError
+) -> tuple[int, os.stat_result]:
+    """Open ``path`` for reading without ever blocking; refuse non-regular files and files above ``max_bytes``.
+
+    Returns ``(fd, stat)``; the caller owns ``fd`` (``os.fdopen(fd, "rb")`` or ``os.close``). Raises ``error``
+    with a one-line message ``"<path>: <what> ..."`` for a missing, unreadable, non-regular or too large file.
+    """
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOCTTY", 0)
+    try:
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise error(f"{path}: {what} not found") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot open {what} ({exc.strerror or exc})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise error(f"{path}: {what} is {file_kind(st.st_mode)}, not a regular file")
+        if st.st_size > max_bytes:
+            raise error(f"{path}: {what} too large ({_size(st.st_size)}; the limit is {_size(max_bytes)})")
+        os.set_blocking(fd, True)  # a regular file: reads never block anyway, and buffered I/O expects this
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, st
+
+
+def read_bounded(
+    path: str | Path, *, max_bytes: int, what: str = "file", error: type[Exception] = UntrustedFileError
+) -> bytes:
+    """The content of the regular file ``path``, at most ``max_bytes`` (else ``error``; see ``open_regular``)."""
+    fd, _ = open_regular(path, max_bytes=max_bytes, what=what, error=error)
+    try:
+        with os.fdopen(fd, "rb") as fh:
+            raw = fh.read(max_bytes + 1)
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    if len(raw) > max_bytes:  # grew after fstat
+        raise error(f"{path}: {what} too large (more than {_size(max_bytes)})")
+    return raw
+
+
+def open_binary(
+    path: str | Path, *, max_bytes: int, what: str = "file", error: type[Exception] = UntrustedFileError
+) -> IO[bytes]:
+    """``open_regular`` as a buffered binary file object (for streaming readers)."""
+    fd, _ = open_regular(path, max_bytes=max_bytes, what=what, error=error)
+    return os.fdopen(fd, "rb")
+
+
+def decode_utf8(
+    raw: bytes, path: str | Path, *, what: str = "file", error: type[Exception] = UntrustedFileError
+) -> str:
+    """Strict UTF-8 decoding; the error names the line, column and value of the first bad byte."""
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise error(
+            f"{path}: {what} is not UTF-8 text (byte 0x{raw[exc.start]:02x} at line {line}, column {column})"
+        ) from None
+
+
+def check_nesting(
+    text: str,
+    max_depth: int,
+    path: str | Path,
+    *,
+    what: str = "file",
+    error: type[Exception] = UntrustedFileError,
+    quoted: bool = True,
+) -> int:
+    """Raise ``error`` if ``[``/``{`` nest deeper than ``max_depth`` in ``text``; returns the depth found.
+
+    With ``quoted=True`` (JSON) brackets inside double-quoted strings are ignored. Linear time, no recursion.
+    """
+    depth = deepest = 0
+    in_string = escaped = False
+    if not quoted and "[" not in text and "{" not in text:
+        return 0
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+            continue
+        if ch == "[" or ch == "{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if deepest > max_depth:
+                    raise error(f"{path}: {what} nests deeper than {max_depth} levels")
+        elif ch == "]" or ch == "}":
+            depth -= 1
+        elif ch == '"' and quoted:
+            in_string = True
+    return deepest
+
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel = 2
+_REPR.maxstring = EXCERPT_CHARS
+_REPR.maxother = EXCERPT_CHARS
+_REPR.maxlong = 24
+for _name in ("maxlist", "maxtuple", "maxdict", "maxset", "maxfrozenset", "maxdeque", "maxarray"):
+    setattr(_REPR, _name, 4)
+
+
+def excerpt(value: Any, limit: int = EXCERPT_CHARS) -> str:
+    """A short, escaped, one-line ``repr`` of ``value`` (bounded work for any size or depth), for messages."""
+    try:
+        text = _REPR.repr(value)
+    except Exception:  # a hostile __repr__ or an int too long to convert: say what it is, not what it holds
+        text = f"<{type(value).__name__}>"
+    text = text.encode("ascii", "backslashreplace").decode("ascii")
+    text = text.replace("\n", "\\n").replace("\r", "\\r")
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def short_text(text: str, limit: int = 120) -> str:
+    """A message fragment (e.g. a parser's problem text) on one line, ASCII-escaped, at most ``limit`` chars."""
+    text = " ".join(str(text).split()).encode("ascii", "backslashreplace").decode("ascii")
+    return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -1,0 +1,109 @@
+"""The command line against hostile files: every subcommand that takes a file, as a real subprocess under a
+1.5 GiB address-space limit and a timeout: exit code 2, exactly one line on stderr, never "Traceback".
+
+Subprocesses cost 1-2 s each (numba import), so each subcommand meets one or two hostile files here (run three
+at a time); the in-process tests (test_hostile_readers.py) put every fixture through every reader.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from .conftest import run_cli, run_many
+
+TIMEOUT = 90.0
+
+
+def _assert_one_line_refusal(args, returncode, out, err, seconds, expected_rc=2):
+    where = f"ptw-rt {' '.join(map(str, args))}"
+    assert returncode is not None, f"{where}: killed after {seconds:.0f} s (timeout)"
+    assert "Traceback" not in out + err, f"{where}:\n{err[-3000:]}"
+    # demo announces its simulation before it reads the configuration (runtime/demo.py): a progress note, not an error
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("simulating ")]
+    assert len(lines) == 1, f"{where}: stderr has {len(lines)} lines:\n{err[-3000:]}"
+    assert len(lines[0]) < 500, f"{where}: a {len(lines[0])}-character message"
+    assert lines[0].startswith(f"ptw-rt {args[0]}"), f"{where}: {lines[0]}"
+    assert returncode == expected_rc, f"{where}: exit {returncode}, stderr: {err[-500:]}"
+
+
+def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs, hostile_logs, tmp_path):
+    c = hostile_configs
+    d = hostile_designs
+    log = hostile_logs["digits_400"]
+    out = tmp_path
+    commands = [
+        (["analyze", "--config", c["alias_bomb_as_value"]], 2),
+        (["design", "--config", c["nested_brackets"], "--out", out / "d.npz"], 2),
+        (["design", "--check", "--design-file", d["zip_bomb"]], 1),  # --check: exit 1 = "the check failed"
+        (["simulate", "--scenario", "dlc_50", "--config", c["non_utf8"], "--out", out / "sim"], 2),
+        (["evaluate", "--scenario", "dlc_50", "--config", c["dev_zero"]], 2),
+        (["evaluate", "--scenario", "dlc_50", "--design-file", d["shape_lie"]], 2),
+        (["report", "--scenario", "dlc_50", "--config", c["fifo"], "--out", out / "rep"], 2),
+        (["report", "--scenario", "dlc_50", "--design-file", d["pickle"], "--out", out / "rep"], 2),
+        (["run", "--check-config", "--config", c["alias_bomb"]], 2),
+        (["run", "--check-config", "--config", c["huge_sparse"]], 2),
+        (["run", "--check-config", "--design-file", d["fifo"]], 2),
+        (["replay", log, "--out", out / "r.log", "--config", c["directory"]], 2),
+        (["replay", log, "--out", out / "r.log", "--design-file", d["size_lie"]], 2),
+        (["replay", hostile_logs["dev_zero"], "--out", out / "z.log"], 2),
+        (["replay", hostile_logs["fifo"], "--out", out / "f.log"], 2),
+        (["demo", "--config", c["long_bad_text"], "--out", out / "demo"], 2),
+    ]
+    results = run_many([args for args, _ in commands], cwd=tmp_path, timeout=TIMEOUT)
+    expected = {tuple(map(str, args)): rc for args, rc in commands}
+    for args, returncode, stdout, stderr, seconds in results:
+        _assert_one_line_refusal(args, returncode, stdout, stderr, seconds, expected[tuple(map(str, args))])
+
+
+def test_replay_of_hostile_logs_rejects_lines_and_finishes(hostile_logs, tmp_path):
+    """A directory of logs with hostile lines: every log replayed, every bad line counted, no traceback."""
+    names = [
+        "digits_400",
+        "digits_200_everywhere",
+        "inf_first",
+        "nan_and_inf",
+        "stray_zero_first",
+        "far_future_line",
+        "year_2286_line",
+        "negative",
+        "reversed",
+        "block_5s_in_past",
+        "long_line",
+        "random_bytes",
+        "empty",
+    ]
+    src = tmp_path / "logs"
+    src.mkdir()
+    for name in names:
+        (src / f"{name}.log").write_bytes(hostile_logs[name].read_bytes())
+    proc = run_cli(["replay", src, "--out", tmp_path / "out", "--jobs", "2", "--no-progress"], tmp_path, TIMEOUT)
+    assert "Traceback" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summaries = {json.loads(line)["log"].rsplit("/", 1)[-1][:-4]: json.loads(line) for line in proc.stdout.splitlines()}
+    assert set(summaries) == set(names)
+    for name, summary in summaries.items():
+        if name != "empty":
+            assert summary["malformed_lines"] >= 1, (name, summary)
+        # nothing runs away: 2 s of log at most (phase 2 bounds output by content for real gaps too)
+        assert summary["cycles"] <= 250, (name, summary)
+
+
+@pytest.mark.parametrize("state", ["fifo", "value_x1000"])
+def test_daemon_starts_despite_hostile_state_file(state, hostile_states, tmp_path):
+    """A FIFO at the state path must not block start-up; absurd values are refused whole, never saved back."""
+    path = hostile_states[state]
+    before = path.read_bytes() if path.is_file() else None
+    proc = run_cli(
+        ["run", "--interface", "virtual", "--channel", f"hostile-{state}", "--state-file", path, "--duration", "0.5"],
+        tmp_path,
+        TIMEOUT,
+    )
+    assert "Traceback" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    warnings = [line for line in proc.stderr.splitlines() if "WARNING" in line and "state file" in line]
+    assert len(warnings) == 1, proc.stderr[-2000:]
+    assert ("FIFO" if state == "fifo" else "refused whole") in warnings[0]
+    if before is not None:
+        assert path.read_bytes() == before  # the refused values were not "learned" and saved back
