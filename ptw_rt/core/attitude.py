@@ -373,15 +373,24 @@ def attitude_step(
             H[X_VY] = 1.0 / u
             _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2, gate)
 
-    # ---- 3. predict to this cycle with the previous cycle's rates ----
+    # ---- 3. predict to this cycle: trapezoidal integration of the previous and this cycle's rates (both are
+    # known; the rectangle rule's dt^2 phi''/2 per step adds up to ~0.2 deg in a quick lane change) ----
     phi = x[X_PHI]
     s, c = math.sin(phi), math.cos(phi)
     bp, bq, br = x[X_BP], x[X_BQ], x[X_BR]
-    q1, r1 = prev[PREV_Q] - bq, prev[PREV_R] - br
+    if rates_ok:
+        p_mid = 0.5 * (prev[PREV_P] + p)
+        q_mid = 0.5 * (prev[PREV_Q] + q)
+        r_mid = 0.5 * (prev[PREV_R] + r)
+    else:
+        p_mid, q_mid, r_mid = prev[PREV_P], prev[PREV_Q], prev[PREV_R]
+    x[X_PHI] += dt * (p_mid - bp)
+    phi_mid = 0.5 * (phi + x[X_PHI])
+    s, c = math.sin(phi_mid), math.cos(phi_mid)
+    q1, r1 = q_mid - bq, r_mid - br
     rg1 = q1 * s + r1 * c
     pitch1 = q1 * c - r1 * s
     d_psi = dt * rg1
-    x[X_PHI] += dt * (prev[PREV_P] - bp)
     x[X_PSI] += d_psi
     ta = prm[A_SIDESLIP_ACCEL_TIME]
     tv = prm[A_SIDESLIP_TIME]

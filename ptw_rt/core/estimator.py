@@ -103,6 +103,7 @@ from ptw_rt.core.layout import (
     S_GPS_COURSE,
     S_GPS_FIX,
     S_GPS_SPEED,
+    S_IMU_AGE,
     S_INPUT_REASONS,
     S_PITCH_RATE_BODY,
     S_ROLL_RATE_BODY,
@@ -527,7 +528,10 @@ def estimator_step(
     if run_observers:
         tau = kf_out[kf.TAU]
     if attitude_ok:
-        roll = roll_prev
+        # the attitude filter's roll is that of the IMU's sample time: carry it to the cycle's time with the
+        # gyro (the sample is up to one cycle old; bounded so a stale stamp cannot extrapolate far)
+        age = min(max(sample[S_IMU_AGE], 0.0), 2.0 * dt) if math.isfinite(sample[S_IMU_AGE]) else 0.0
+        roll = roll_prev + p_rate * age
     else:
         roll = glue[G_ROLL] + dt * p_rate
         pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)

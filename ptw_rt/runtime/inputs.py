@@ -31,6 +31,7 @@ from ptw_rt.core.layout import (
     S_GPS_COURSE,
     S_GPS_FIX,
     S_GPS_SPEED,
+    S_IMU_AGE,
     S_INPUT_REASONS,
     S_PITCH_RATE_BODY,
     S_ROLL_RATE_BODY,
@@ -43,6 +44,7 @@ from ptw_rt.core.layout import (
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
 
 _BYTES_TYPES = (bytes, bytearray)
+MAX_IMU_AGE = 0.05  # s
 _FLOAT64 = np.dtype(np.float64)  # the native-order dtype instance, for an identity test (== on dtypes is slow)
 _SAMPLE_SHAPE = (SAMPLE_SIZE,)
 
@@ -103,6 +105,7 @@ class InputTracker:
         # frame id -> everything on_frame needs for that message, resolved once here instead of per frame
         self._plans = {fid: self._plan(name) for fid, name in self._ids.items()}
         # (health, timeout, MSG_* bit) in health order, for fill()
+        self._imu_health = self.health["IMU_Rates"]
         self._stale_plan = tuple((self.health[n], self._timeout[n], INPUT_MESSAGE_BITS[n]) for n in SIGNAL_SLOTS)
         self._stale_bits = sum(bit for h, _, bit in self._stale_plan if h.stale)
         self._fresh = 0
@@ -230,6 +233,8 @@ class InputTracker:
         row[S_FRESH] = self._fresh
         row[S_STALE] = stale_bits
         row[S_INPUT_REASONS] = self._reasons
+        # how old the IMU's newest sample is at this cycle (bounded: beyond a few cycles the input is stale)
+        row[S_IMU_AGE] = min(max(now - self._imu_health.last_valid_time, 0.0), MAX_IMU_AGE)
         if sample.dtype is _FLOAT64 and sample.shape == _SAMPLE_SHAPE and sample.flags.c_contiguous:
             self._row_struct.pack_into(sample, 0, *row)  # float64 bytes straight into the array's buffer
         else:  # any other array: as numpy assigns it

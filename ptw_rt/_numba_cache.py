@@ -1,0 +1,62 @@
+"""One numba cache directory per version of the jitted source (see `ptw_rt/__init__.py` for why).
+
+The base is `NUMBA_CACHE_DIR` if set (the systemd unit sets it under `CacheDirectory=`), else
+`$XDG_CACHE_HOME/ptw-rt/numba` (`~/.cache/ptw-rt/numba`). Below it, `src-<hash>` holds the cache of one
+version of `ptw_rt/core` and `ptw_rt/sim` (the packages with jitted code); directories of other versions
+that nobody touched for an hour are removed, so upgrades do not accumulate caches.
+Nothing here may raise: a cache problem costs one slow start, never a failed one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import time
+from pathlib import Path
+
+JITTED_PACKAGES = ("core", "sim")
+_PREFIX = "src-"
+_STALE_AFTER_S = 3600.0
+_ENV = "NUMBA_CACHE_DIR"
+
+
+def source_key() -> str:
+    """Hash of every module of the jitted packages (names and contents)."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for package in JITTED_PACKAGES:
+        for path in sorted((root / package).glob("*.py")):
+            digest.update(path.name.encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _default_base() -> Path:
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "ptw-rt" / "numba"
+
+
+def key_numba_cache_to_source() -> None:
+    try:
+        base = Path(os.environ.get(_ENV) or _default_base())
+        if base.name.startswith(_PREFIX):  # keyed already (a child process inheriting the environment)
+            base = base.parent
+        key = _PREFIX + source_key()
+        os.environ[_ENV] = str(base / key)
+        _remove_other_versions(base, key)
+    except Exception:  # noqa: BLE001 - never fail an import over a cache
+        pass
+
+
+def _remove_other_versions(base: Path, keep: str) -> None:
+    if not base.is_dir():
+        return
+    now = time.time()
+    for entry in base.iterdir():
+        if entry.name.startswith(_PREFIX) and entry.name != keep and entry.is_dir():
+            try:
+                if now - entry.stat().st_mtime > _STALE_AFTER_S:
+                    shutil.rmtree(entry, ignore_errors=True)
+            except OSError:
+                pass
