@@ -32,8 +32,8 @@ from ptw_rt.core.layout import (
     V_ROLL_RATE,
     new_estimates,
 )
+from ptw_rt.edge.outputs import SIGNAL_MAP, OutputEncoder
 from ptw_rt.io.dbc import FrameCodec
-from ptw_rt.runtime.outputs import SIGNAL_MAP, OutputEncoder
 
 ALL_VALID = (1 << 10) - 1
 

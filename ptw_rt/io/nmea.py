@@ -199,7 +199,7 @@ class SerialGnssReader:
     retried every ``retry_s`` until it works again; nothing is raised out of the thread. Use a stable path such as
     ``/dev/serial/by-id/...`` so a replugged receiver comes back under the same name.
 
-    Start it BEFORE :func:`ptw_rt.runtime.realtime.apply_realtime`: threads inherit the SCHED_FIFO policy of the
+    Start it BEFORE :func:`ptw_rt.service.realtime.apply_realtime`: threads inherit the SCHED_FIFO policy of the
     thread that creates them, and this one should not compete with the loop.
     Raises :class:`UserFacingError` when pynmea2 (or pyserial) is not installed.
     """

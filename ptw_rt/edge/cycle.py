@@ -18,9 +18,9 @@ import numpy as np
 from ptw_rt.core.estimator import Estimator
 from ptw_rt.core.layout import S_INPUT_REASONS, new_estimates, new_sample
 from ptw_rt.design.file import load_design
+from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
-from ptw_rt.runtime.inputs import InputTracker
 from ptw_rt.settings import Settings, load_settings
 
 
@@ -31,7 +31,7 @@ class CycleRunner:
         self.settings = settings
         self.estimator = estimator
         self.codec = codec
-        self.tracker = InputTracker(codec, stale_after_periods=settings.runtime["stale_after_periods"])
+        self.tracker = InputTracker(codec, stale_after_periods=settings.runtime.stale_after_periods)
         self.sample = new_sample()
         self.estimates = new_estimates()
         self.sample_time = estimator.sample_time

@@ -47,16 +47,16 @@ from ptw_rt.core.layout import (
     V_CORNERING,
     reason_names,
 )
+from ptw_rt.edge.cycle import CycleRunner, build_runner
+from ptw_rt.edge.outputs import OutputEncoder
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.dbc import DbcError
 from ptw_rt.io.state_file import load_state, save_state
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
-from ptw_rt.runtime.cycle import CycleRunner, build_runner
-from ptw_rt.runtime.logs import HealthSummary, RateLimitedLog, setup_logging
-from ptw_rt.runtime.outputs import OutputEncoder
-from ptw_rt.runtime.realtime import apply_realtime, restore_scheduling, thread_scheduling
-from ptw_rt.runtime.sdnotify import SystemdNotifier, WatchdogGate
-from ptw_rt.settings import Settings, load_settings
+from ptw_rt.service.logs import HealthSummary, RateLimitedLog, setup_logging
+from ptw_rt.service.realtime import apply_realtime, restore_scheduling, thread_scheduling
+from ptw_rt.service.sdnotify import SystemdNotifier, WatchdogGate
+from ptw_rt.settings import BusSettings, Settings, load_settings
 
 __all__ = ["Daemon", "load_daemon_settings", "run_daemon"]
 
@@ -69,20 +69,20 @@ _BITRATE_INTERFACES = frozenset({"pcan", "kvaser", "ixxat", "vector", "slcan", "
 _RX_QUEUE_MAX = 20000
 
 
-def _open_bus(bus_cfg: dict[str, Any], filters: list[dict]) -> can.BusABC:
+def _open_bus(bus_cfg: BusSettings, filters: list[dict]) -> can.BusABC:
     """Open the configured bus. A bad interface name is a user error; a missing device raises can.CanError/OSError."""
     kwargs: dict[str, Any] = {
-        "interface": bus_cfg["interface"],
-        "channel": bus_cfg["channel"],
+        "interface": bus_cfg.interface,
+        "channel": bus_cfg.channel,
         "can_filters": filters,
         "receive_own_messages": False,
     }
-    if bus_cfg["interface"] in _BITRATE_INTERFACES:
-        kwargs["bitrate"] = bus_cfg["bitrate"]
+    if bus_cfg.interface in _BITRATE_INTERFACES:
+        kwargs["bitrate"] = bus_cfg.bitrate
     try:
         return can.Bus(**kwargs)
     except (can.CanInterfaceNotImplementedError, ImportError, NotImplementedError) as exc:
-        raise UserFacingError(f"CAN interface {bus_cfg['interface']!r} is not available: {exc}") from exc
+        raise UserFacingError(f"CAN interface {bus_cfg.interface!r} is not available: {exc}") from exc
 
 
 class _Reader(threading.Thread):
@@ -136,7 +136,7 @@ class Daemon:
         self.filters = self.codec.can_filters(self.codec.input_messages)
         self.notifier = notifier if notifier is not None else SystemdNotifier()
         self.watchdog = WatchdogGate(self.notifier)
-        self.rate_log = RateLimitedLog(log, settings.runtime["log_repeat_interval_s"])
+        self.rate_log = RateLimitedLog(log, settings.runtime.log_repeat_interval_s)
         self.bus: can.BusABC | None = None
         self._reader: _Reader | None = None
         self._rx: collections.deque = collections.deque(maxlen=_RX_QUEUE_MAX)
@@ -179,16 +179,16 @@ class Daemon:
     # ------------------------------------------------------------------ bus
 
     def _try_open(self) -> bool:
-        cfg = self.settings.runtime["bus"]
+        cfg = self.settings.runtime.bus
         try:
             bus = _open_bus(cfg, self.filters)
         except (can.CanError, OSError, ValueError) as exc:
-            self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg['interface']}:{cfg['channel']}: {exc}", 0.0)
+            self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", 0.0)
             return False
         self.bus = bus
         self._reader = _Reader(bus, self._rx)
         self._reader.start()
-        log.info("CAN bus %s:%s open", cfg["interface"], cfg["channel"])
+        log.info("CAN bus %s:%s open", cfg.interface, cfg.channel)
         return True
 
     def _close_bus(self) -> None:
@@ -209,7 +209,7 @@ class Daemon:
         bus = self.bus
         if bus is None:
             return False
-        retries = self.settings.runtime["bus"]["send_retries"]
+        retries = self.settings.runtime.bus.send_retries
         ok = True
         for fid, data in frames:
             msg = can.Message(arbitration_id=fid, data=data, is_extended_id=False)
@@ -236,7 +236,7 @@ class Daemon:
     # ------------------------------------------------------------------ state
 
     def _restore_state(self) -> None:
-        path = self.settings.runtime.get("state_file")
+        path = self.settings.runtime.state_file
         if not path:
             return
         state, reason = load_state(path, self.settings.config_hash)
@@ -259,7 +259,7 @@ class Daemon:
         return [float(v) for v in self.runner.estimator.learned_stiffness()]
 
     def _save_state(self, values, now: float) -> None:
-        path = self.settings.runtime.get("state_file")
+        path = self.settings.runtime.state_file
         if not path or values is None:
             return
         try:
@@ -287,7 +287,7 @@ class Daemon:
         except UserFacingError as exc:
             log.error("SIGHUP: config not reloaded, keeping the running one: %s", exc)
             return
-        if settings.runtime["bus"] != self.settings.runtime["bus"]:
+        if settings.runtime.bus != self.settings.runtime.bus:
             log.warning("SIGHUP: runtime.bus changed; the bus is reopened with the new settings")
             self.settings = settings
             self._close_bus()
@@ -297,19 +297,17 @@ class Daemon:
             self.runner = runner
             self.estimates = runner.estimates
         self.settings = settings
-        self.rate_log.repeat_interval_s = float(settings.runtime["log_repeat_interval_s"])
-        logging.getLogger().setLevel(settings.runtime["log_level"])
+        self.rate_log.repeat_interval_s = float(settings.runtime.log_repeat_interval_s)
+        logging.getLogger().setLevel(settings.runtime.log_level)
         log.info("SIGHUP: config %s reloaded%s", self.config_path, "" if same_model else " (estimator restarted)")
 
     # ------------------------------------------------------------------ loop
 
     def run(self, duration: float | None = None) -> int:
         """Run until ``stop()`` (or ``duration`` seconds). Returns 0."""
-        rt = self.settings.runtime["realtime"]
+        rt = self.settings.runtime.realtime
         scheduling_before = thread_scheduling()
-        self.realtime_warnings = apply_realtime(
-            rt["priority"], list(rt["cpus"]) if rt["cpus"] else None, rt["lock_memory"]
-        )
+        self.realtime_warnings = apply_realtime(rt.priority, list(rt.cpus) if rt.cpus else None, rt.lock_memory)
         for w in self.realtime_warnings:
             log.warning("real-time setting not applied: %s", w)
         if self.bus is None:
@@ -325,8 +323,8 @@ class Daemon:
         k = 1  # index of the next deadline on the grid t_start + k * dt
         next_reopen = t_start + REOPEN_INTERVAL_S
         next_status = t_start
-        next_health = t_start + self.settings.runtime["health_log_interval_s"]
-        next_save = t_start + self.settings.runtime["state_save_interval_s"]
+        next_health = t_start + self.settings.runtime.health_log_interval_s
+        next_save = t_start + self.settings.runtime.state_save_interval_s
         overrun_until = -math.inf
         send_fail_until = -math.inf
         period_worst_us = 0.0
@@ -405,10 +403,10 @@ class Daemon:
                     next_status = now + STATUS_NOTIFY_INTERVAL_S
                     self.notifier.status(self._status_text())
                 if now >= next_health:
-                    next_health = now + self.settings.runtime["health_log_interval_s"]
+                    next_health = now + self.settings.runtime.health_log_interval_s
                     self._health_log(now)
                 if now >= next_save:
-                    next_save = now + self.settings.runtime["state_save_interval_s"]
+                    next_save = now + self.settings.runtime.state_save_interval_s
                     self._save_in_background(now)
         finally:
             self._shutdown()
@@ -431,8 +429,8 @@ class Daemon:
     # ------------------------------------------------------------------ reporting
 
     def _bus_name(self) -> str:
-        b = self.settings.runtime["bus"]
-        return f"{b['interface']}:{b['channel']}"
+        b = self.settings.runtime.bus
+        return f"{b.interface}:{b.channel}"
 
     def _status_text(self) -> str:
         e = self.estimates
@@ -494,15 +492,17 @@ def load_daemon_settings(config: str | Path, overrides: dict[str, Any] | None = 
     settings = load_settings(config)
     if not overrides:
         return settings
-    runtime = dict(settings.runtime)
-    runtime["bus"] = dict(runtime["bus"])
-    for key, value in overrides.items():
-        if value is None:
-            continue
-        if key in ("interface", "channel"):
-            runtime["bus"][key] = str(value)
-        else:
-            runtime[key] = str(value) if isinstance(value, Path) else value
+    runtime = settings.runtime
+    bus = {k: str(v) for k, v in overrides.items() if k in ("interface", "channel") and v is not None}
+    rest = {
+        k: str(v) if isinstance(v, Path) else v
+        for k, v in overrides.items()
+        if k not in ("interface", "channel") and v is not None
+    }
+    if bus:
+        runtime = dataclasses.replace(runtime, bus=dataclasses.replace(runtime.bus, **bus))
+    if rest:
+        runtime = dataclasses.replace(runtime, **rest)
     return dataclasses.replace(settings, runtime=runtime)
 
 
@@ -521,16 +521,16 @@ def run_daemon(args) -> int:
     design = args.design_file or DEFAULT_DESIGN
     if args.check_config:
         runner = _build(Path(args.config), design, DEFAULT_DBC, settings)
-        bus = settings.runtime["bus"]
+        bus = settings.runtime.bus
         print(
             f"config OK: {args.config} (hash {settings.config_hash[:12]}), design {design}, "
             f"DBC {runner.codec.dbc_path} ({len(runner.codec.output_messages)} outputs), "
-            f"bus {bus['interface']}:{bus['channel']}, sample time {runner.sample_time * 1e3:g} ms"
+            f"bus {bus.interface}:{bus.channel}, sample time {runner.sample_time * 1e3:g} ms"
         )
         return 0
     if args.duration is not None and not args.duration > 0:
         raise UserFacingError(f"--duration must be positive, got {args.duration}")
-    setup_logging(settings.runtime["log_level"])
+    setup_logging(settings.runtime.log_level)
     daemon = Daemon(settings, args.config, design, overrides=overrides)
     previous: dict[int, Any] = {}
 

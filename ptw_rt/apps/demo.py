@@ -2,7 +2,7 @@
 
 Three parties share one virtual channel (``ptw-rt-demo-<pid>``), all in this process:
 
-* the **daemon** (``ptw_rt.runtime.daemon.Daemon``, its real 100 Hz loop, in a thread), publishing EST_* frames;
+* the **daemon** (``ptw_rt.service.daemon.Daemon``, its real 100 Hz loop, in a thread), publishing EST_* frames;
 * a **player** thread sending the ride's sensor frames on an absolute ``time.monotonic`` schedule
   (ride time / ``--speed``, no drift);
 * a **listener** thread decoding everything on the wire (``FrameCodec.decode_checked``: CRC and counter range of
@@ -217,7 +217,7 @@ def _duration(args, scenario) -> float:
 
 def run_demo(args) -> int:
     """Simulate, play on a virtual bus into the daemon, show the wire live, score it, write logs and report."""
-    from ptw_rt.runtime.daemon import Daemon, load_daemon_settings
+    from ptw_rt.service.daemon import Daemon, load_daemon_settings
     from ptw_rt.sim.recording import encode_frames, read_truth_csv, write_ride
     from ptw_rt.sim.ride import get_scenario, simulate
 

@@ -24,11 +24,11 @@ from typing import IO, Any
 import numpy as np
 
 from ptw_rt.core.layout import E_MODE, ESTIMATE_NAMES, MODE_NAMES
+from ptw_rt.edge.cycle import CycleRunner, build_runner, drive_log
+from ptw_rt.edge.outputs import OutputEncoder
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import CandumpReader, CandumpWriter, read_log
 from ptw_rt.paths import DEFAULT_CONFIG
-from ptw_rt.runtime.cycle import CycleRunner, build_runner, drive_log
-from ptw_rt.runtime.outputs import OutputEncoder
 
 __all__ = ["replay_log", "run_replay"]
 
