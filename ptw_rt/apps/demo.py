@@ -39,7 +39,7 @@ from ptw_rt.core.layout import MODE_NAMES, MODE_VALID
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import CandumpWriter
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
-from ptw_rt.io.e2e import counter_delta
+from ptw_rt.io.e2e import CounterChecker, P11Status
 from ptw_rt.paths import DEFAULT_CONFIG
 
 __all__ = ["run_demo"]
@@ -51,6 +51,7 @@ READY_TIMEOUT_S = 10.0
 LIVE_PERIOD_TTY = 0.2
 LIVE_PERIOD_PIPE = 1.0
 LOG_CHANNEL = "vcan0"
+_SEQUENCE_OK = (P11Status.OK, P11Status.INITIAL)
 
 # (output message, signal, truth column, scale to the printed unit, printed name, unit)
 _SCORED = (
@@ -114,7 +115,7 @@ class _Listener(threading.Thread):
         self.errors: collections.Counter = collections.Counter()  # decode error reason -> count (outputs)
         self.counter_errors: collections.Counter = collections.Counter()  # message -> counter steps != 1
         self.inputs = 0
-        self._last_counter: dict[str, int] = {}
+        self._checkers = {n: CounterChecker(codec.counter_modulus(n)) for n in codec.output_messages}
 
     def run(self) -> None:
         clock = time.monotonic
@@ -151,12 +152,8 @@ class _Listener(threading.Thread):
             self.errors[exc.reason] += 1
             return
         counter = codec.counter_signal(name)
-        if counter is not None:
-            c = int(values[counter])
-            last = self._last_counter.get(name)
-            if last is not None and counter_delta(last, c, codec.counter_modulus(name)) != 1:
-                self.counter_errors[name] += 1
-            self._last_counter[name] = c
+        if counter is not None and self._checkers[name].step(int(values[counter])) not in _SEQUENCE_OK:
+            self.counter_errors[name] += 1
         self.decoded[name].append((now, values))
         with self.lock:
             self.latest[name] = values
