@@ -82,62 +82,38 @@ def _step_in_subprocess(n: int, disable_jit: bool) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def measure_cycle(n_cycles: int = 2000) -> dict | None:
-    """decode + step + encode of one cycle's frames (the daemon's CPU work per cycle, I/O excluded)."""
-    try:
-        from ptw_rt.edge.outputs import OutputEncoder
-    except ImportError:
-        return None
+def measure_cycle(n_cycles: int = 2000) -> dict:
+    """decode + step + encode of one cycle's frames (the daemon's CPU work per cycle, I/O excluded): ``run``."""
     from ptw_rt.edge.cycle import build_runner
 
     ride, frames = _riding_frames(12.0)
     runner = build_runner(DEFAULT_CONFIG)
-    encoder = OutputEncoder(runner.codec)
     dt = runner.sample_time
     t_next = frames[0][0] + dt
     i = 0
     times = []
-    k = 0
     clock = time.perf_counter_ns
-    while i < len(frames) and k < n_cycles:
+    while i < len(frames) and len(times) < n_cycles:
         t0 = clock()
         while i < len(frames) and frames[i][0] <= t_next:
             runner.on_frame(frames[i][0], frames[i][1], frames[i][2])
             i += 1
-        est = runner.cycle(t_next)
-        encoder.frames(est, k, _status())
+        runner.run(t_next)
         times.append(clock() - t0)
         t_next += dt
-        k += 1
     return _percentiles(np.asarray(times[100:], dtype=np.int64))
 
 
-def _status() -> dict:
-    return {"overrun_count": 0, "cycle_time_us": 0, "stale_bits": 0}
-
-
 def _replay_one(seconds: float) -> tuple[float, float]:
-    """(ride seconds, wall seconds) of replaying one simulated log through cycle + encoder."""
+    """(ride seconds, wall seconds) of replaying one simulated log through the whole cycle (decode, step, encode)."""
     from ptw_rt.edge.cycle import build_runner, drive_log
 
-    try:
-        from ptw_rt.edge.outputs import OutputEncoder
-    except ImportError:
-        OutputEncoder = None  # noqa: N806
     ride, frames = _riding_frames(seconds)
     runner = build_runner(DEFAULT_CONFIG)
-    encoder = OutputEncoder(runner.codec) if OutputEncoder else None
-    counter = [0]
-
-    def on_cycle(now, est):
-        if encoder is not None:
-            encoder.frames(est, counter[0], _status())
-        counter[0] += 1
-
-    drive_log(frames[:200], runner, on_cycle, start=ride.epoch)  # warm
+    drive_log(frames[:200], runner, on_frames=lambda now, out: None, start=ride.epoch)  # warm
     runner = build_runner(DEFAULT_CONFIG)
     t0 = time.perf_counter()
-    drive_log(frames, runner, on_cycle, start=ride.epoch)
+    drive_log(frames, runner, on_frames=lambda now, out: None, start=ride.epoch)
     return ride.duration, time.perf_counter() - t0
 
 

@@ -395,7 +395,7 @@ def _summary(daemon, listener: _Listener, player: _Player, ride, truth, speed: f
     # the wire
     print("frames received / expected (from the daemon's cycle count):")
     for name in daemon.codec.output_messages:
-        period = daemon.encoder.periods.get(name, 1)
+        period = daemon.runner.encoder.periods.get(name, 1)
         expected = math.ceil(daemon.cycles / period) + (1 if name == "EST_Status" else 0)  # + the last frame
         print(f"  {name:<18} {listener.received[name]:6d} / {expected:6d}")
     crc = listener.errors.get(FrameDecodeError.CRC, 0)

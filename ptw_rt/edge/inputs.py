@@ -178,6 +178,11 @@ class InputTracker:
         h.last_valid_time = timestamp
         self._fresh |= bit
 
+    def decode_error(self, message: str) -> None:
+        """Something of ``message`` arrived that could not be decoded (a serial line with a bad checksum)."""
+        self.health[message].decode_errors += 1
+        self._reasons |= REASON_DECODE_ERRORS
+
     def lost(self, message: str) -> None:
         """The source of ``message`` is gone (a serial receiver unplugged): stale from the next ``fill`` on,
         without waiting for its timeout."""

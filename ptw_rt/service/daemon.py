@@ -2,20 +2,26 @@
 
 One cycle (every ``sample_time`` of ``time.monotonic()``, deadlines on a fixed grid so nothing drifts):
 
-    frames received since the last cycle -> CycleRunner.cycle -> OutputEncoder -> bus.send
+    frames received since the last cycle (+ the serial GNSS receiver's newest solution) -> CycleRunner.run -> bus.send
 
 * A reader thread receives the input frames (the bus filters to the DBC's input ids; on the virtual bus python-can
   filters in software, which a ``recv(timeout=0)`` drain would mistake for an empty queue) and stamps them with
   the monotonic clock, so the tracker's timeouts use the loop's clock.
 * Overrun: when the loop wakes more than one period late it does not burst through the missed cycles: it
   resynchronises to the grid, counts the missed cycles (EST_Status.OverrunCount) and raises REASON_OVERRUN for
-  a status period.
+  a status period (in EST_Status.ReasonBits, beside the estimator's own bits: the process's health is reported at
+  the edge and never goes through the estimator).
 * A failed send (``can.CanError``/``OSError``) is retried ``send_retries`` times, counted, raises
   REASON_SEND_FAILURE for a second, and is never fatal. A bus that disappears (the reader fails) is closed and
   reopened every second while the loop keeps its period.
 * SIGTERM/SIGINT stop the loop: a last EST_Status with EST_Status_Valid = 0, the learned stiffness saved.
   SIGHUP reloads the config file (kept running with the old one if the new one is invalid).
 * sd_notify: READY after the first published cycle, STATUS every second, WATCHDOG only while cycles are healthy.
+* ``runtime.gps.source: serial``: a reader thread (``ptw_rt.io.nmea.SerialGnssReader``, started before the loop
+  takes its real-time priority) parses RMC/VTG from ``runtime.gps.serial_port``; each cycle takes its newest
+  solution as a GPS_Velocity would be taken (same Sample slots, range checks, timeout). An unplugged receiver
+  makes GPS_Velocity stale in the next cycle (EST_Status.SensorTimeouts, DEGRADED), a replugged one is reopened
+  every second; checksum errors and garbage lines count as decode errors of GPS_Velocity and are logged.
 
 ``Daemon`` is usable in a thread of another program (tests, demo): ``run(duration)`` / ``stop()``; only
 ``run_daemon`` installs signal handlers.
@@ -48,9 +54,9 @@ from ptw_rt.core.layout import (
     reason_names,
 )
 from ptw_rt.edge.cycle import CycleRunner, build_runner
-from ptw_rt.edge.outputs import OutputEncoder
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.dbc import DbcError
+from ptw_rt.io.nmea import NmeaParser, SerialGnssReader
 from ptw_rt.io.state_file import load_state, save_state
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.service.logs import HealthSummary, RateLimitedLog, setup_logging
@@ -131,8 +137,7 @@ class Daemon:
         self.runner: CycleRunner = _build(self.config_path, design_file, dbc, settings)
         self.codec = self.runner.codec
         self.dt = self.runner.sample_time
-        self.encoder = OutputEncoder(self.codec, self.dt)
-        self.status_period = self.encoder.periods["EST_Status"]
+        self.status_period = self.runner.encoder.periods["EST_Status"]
         self.filters = self.codec.can_filters(self.codec.input_messages)
         self.notifier = notifier if notifier is not None else SystemdNotifier()
         self.watchdog = WatchdogGate(self.notifier)
@@ -159,6 +164,13 @@ class Daemon:
         self.on_cycle = None
         self.state_note = "no state file configured"
         self.realtime_warnings: list[str] = []  # what apply_realtime could not put in force at the last run()
+        self.gnss: SerialGnssReader | None = None
+        if settings.runtime.gps.source == "serial":
+            gps = settings.runtime.gps
+            self.gnss = SerialGnssReader(gps.serial_port, gps.serial_baudrate)  # UserFacingError without pynmea2
+        self._gnss_taken = None  # receive time of the last solution taken into a cycle
+        self._gnss_connected = False
+        self._gnss_bad = 0  # checksum errors + garbage lines seen so far
         self._saver: threading.Thread | None = None
         self._warm_up()
         self._restore_state()
@@ -227,6 +239,37 @@ class Daemon:
                 break
         return ok
 
+    def _poll_gnss(self, runner: CycleRunner, gnss: SerialGnssReader, now: float) -> None:
+        """The serial receiver's newest solution into this cycle, its unplug and its bad lines (cheap: no lock)."""
+        connected = gnss.connected
+        if connected != self._gnss_connected:
+            self._gnss_connected = connected
+            if not connected:  # unplugged: stale now, not after the timeout
+                runner.tracker.lost("GPS_Velocity")
+                self.rate_log.error("gnss_lost", f"GNSS receiver {gnss.port} lost: {gnss.last_error}", now)
+            else:
+                log.info("GNSS receiver %s connected", gnss.port)
+        bad = gnss.parser.checksum_errors + gnss.parser.garbage
+        if bad != self._gnss_bad:
+            for _ in range(bad - self._gnss_bad):
+                runner.tracker.decode_error("GPS_Velocity")
+            self._gnss_bad = bad
+            p = gnss.parser
+            self.rate_log.warn(
+                "gnss_bad", f"GNSS {gnss.port}: checksum errors {p.checksum_errors}, garbage lines {p.garbage}", now
+            )
+        latest = gnss.latest()
+        if latest is None or latest[0] == self._gnss_taken:
+            return
+        t, speed, course, fix = latest
+        self._gnss_taken = t
+        signals = {"FixType": float(fix)}
+        if speed == speed:  # no speed in the sentence: the neutral value, with its fix 0
+            signals["SpeedOverGround"] = speed
+        if course == course:  # receivers leave the course empty at standstill
+            signals["CourseOverGround"] = course
+        runner.on_values("GPS_Velocity", t, signals)
+
     def _warm_up(self) -> None:
         """Run the jitted step once before the loop (loading/compiling it takes far longer than a cycle)."""
         est = self.runner.estimator
@@ -294,6 +337,8 @@ class Daemon:
         if runner is not None:
             if settings.config_hash == self.settings.config_hash:
                 runner.estimator.restore_stiffness(self.runner.estimator.learned_stiffness())
+            # the wire goes on: output counters and the 10 Hz phase continue
+            runner.encoder, runner.cycles = self.runner.encoder, self.runner.cycles
             self.runner = runner
             self.estimates = runner.estimates
         self.settings = settings
@@ -305,6 +350,8 @@ class Daemon:
 
     def run(self, duration: float | None = None) -> int:
         """Run until ``stop()`` (or ``duration`` seconds). Returns 0."""
+        if self.gnss is not None:
+            self.gnss.start()  # before the real-time priority: the reader thread must not inherit it
         rt = self.settings.runtime.realtime
         scheduling_before = thread_scheduling()
         self.realtime_warnings = apply_realtime(rt.priority, list(rt.cpus) if rt.cpus else None, rt.lock_memory)
@@ -313,7 +360,7 @@ class Daemon:
         if self.bus is None:
             self._try_open()
         runner = self.runner
-        encoder = self.encoder
+        gnss = self.gnss
         rx = self._rx
         dt = self.dt
         clock = time.monotonic
@@ -328,8 +375,6 @@ class Daemon:
         overrun_until = -math.inf
         send_fail_until = -math.inf
         period_worst_us = 0.0
-        status = {"overrun_count": 0, "cycle_time_us": 0}
-        cycle_index = 0
         try:
             while not self._stop.is_set():
                 deadline = t_start + k * dt
@@ -359,18 +404,16 @@ class Daemon:
                     ts, fid, data, ext = rx.popleft()
                     runner.on_frame(ts, fid, data, ext)
                 self.frames_in += n_rx
-                extra = 0
-                if now < overrun_until:
-                    extra |= REASON_OVERRUN
-                if now < send_fail_until:
-                    extra |= REASON_SEND_FAILURE
-                estimates = runner.cycle(now, extra)
-                self.estimates = estimates
-                status["overrun_count"] = self.overruns
-                status["cycle_time_us"] = period_worst_us
-                is_status = cycle_index % self.status_period == 0
-                frames = encoder.frames(estimates, cycle_index, status, runner.tracker.stale_bits())
-                cycle_index += 1
+                if gnss is not None:
+                    self._poll_gnss(runner, gnss, now)
+                runner.process_reasons = (REASON_OVERRUN if now < overrun_until else 0) | (
+                    REASON_SEND_FAILURE if now < send_fail_until else 0
+                )
+                runner.status["overrun_count"] = self.overruns
+                runner.status["cycle_time_us"] = period_worst_us
+                is_status = runner.cycles % self.status_period == 0
+                frames = runner.run(now)
+                estimates = self.estimates = runner.estimates
                 if is_status:
                     period_worst_us = 0.0
                 sent = self._send(frames, now)
@@ -415,10 +458,11 @@ class Daemon:
 
     def _shutdown(self) -> None:
         self.notifier.stopping("stopping")
+        if self.gnss is not None:
+            self.gnss.stop()
         if self.bus is not None:
-            status = {"overrun_count": self.overruns, "cycle_time_us": 0}
-            frame = self.encoder.status_frame(self.estimates, self.runner.tracker.stale_bits(), status, valid=False)
-            self._send([frame], time.monotonic())
+            self.runner.status.update(overrun_count=self.overruns, cycle_time_us=0)
+            self._send([self.runner.final_status()], time.monotonic())
         if self._saver is not None:
             self._saver.join(timeout=5.0)
         self._save_state(self._stiffness_to_save(), time.monotonic())
@@ -436,9 +480,10 @@ class Daemon:
         e = self.estimates
         reasons = ",".join(reason_names(int(e[E_REASONS]))) or "-"
         bus = "open" if self.bus is not None else "LOST"
+        gnss = "" if self.gnss is None else f" gnss={'open' if self.gnss.connected else 'LOST'}"
         return (
             f"mode={MODE_NAMES[int(e[E_MODE])]} reasons={reasons} cycles={self.cycles} overruns={self.overruns} "
-            f"send_failures={self.send_failures} bus={bus}"
+            f"send_failures={self.send_failures} bus={bus}{gnss}"
         )
 
     def health(self) -> dict[str, Any]:
@@ -452,6 +497,7 @@ class Daemon:
             "bus_reopens": self.bus_reopens,
             "worst_cycle_us": round(self.worst_cycle_us, 1),
             "inputs": self.runner.tracker.summary(),
+            "gnss": None if self.gnss is None else self.gnss.stats(),
         }
 
     def _health_log(self, now: float) -> None:
@@ -466,6 +512,10 @@ class Daemon:
                     "jumps": h["counter_jumps"],
                     "timeouts": h["timeouts"],
                 }
+        if self.gnss is not None:
+            g = self.gnss.stats()
+            keys = ("connected", "opens", "disconnects", "used", "checksum_errors", "garbage")
+            inputs["gnss_serial"] = {k: g[k] for k in keys}
         summary = HealthSummary(
             mode=int(self.estimates[E_MODE]),
             reasons=int(self.estimates[E_REASONS]),
@@ -521,11 +571,14 @@ def run_daemon(args) -> int:
     design = args.design_file or DEFAULT_DESIGN
     if args.check_config:
         runner = _build(Path(args.config), design, DEFAULT_DBC, settings)
-        bus = settings.runtime.bus
+        bus, gps = settings.runtime.bus, settings.runtime.gps
+        if gps.source == "serial":
+            NmeaParser()  # UserFacingError naming the gnss extra when pynmea2 is missing
+        where = f"serial {gps.serial_port} at {gps.serial_baudrate} baud" if gps.source == "serial" else "CAN"
         print(
             f"config OK: {args.config} (hash {settings.config_hash[:12]}), design {design}, "
             f"DBC {runner.codec.dbc_path} ({len(runner.codec.output_messages)} outputs), "
-            f"bus {bus.interface}:{bus.channel}, sample time {runner.sample_time * 1e3:g} ms"
+            f"bus {bus.interface}:{bus.channel}, gps {where}, sample time {runner.sample_time * 1e3:g} ms"
         )
         return 0
     if args.duration is not None and not args.duration > 0:
