@@ -1,13 +1,99 @@
-"""`ptw-rt` command line: argparse subcommands that hand over to the module doing the work."""
+"""`ptw-rt` command line: argparse subcommands that hand over to the module doing the work.
+
+Each subcommand's handler below imports the one function that serves it (imported when the command runs, not
+before: `ptw-rt --help` stays quick and the daemon never loads the offline design code). A command that needs an
+optional extra which is not installed says so in one line (exit code 2).
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from importlib import metadata
 from pathlib import Path
 
 from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
+
+# optional extras of pyproject.toml: top-level module -> extra that installs it
+EXTRA_OF_MODULE = {
+    "scipy": "design",
+    "cvxpy": "design",
+    "clarabel": "design",
+    "scs": "design",
+    "matplotlib": "plot",
+    "pynmea2": "gnss",
+}
+
+
+def _version() -> str:
+    try:
+        return metadata.version("ptw-rt")
+    except metadata.PackageNotFoundError:  # run from a source tree that was not installed
+        return "unknown (not installed)"
+
+
+# ---------------------------------------------------------------------- the command handlers
+
+
+def _analyze(args) -> int:
+    from ptw_rt.analysis.report import run_analyze
+
+    return run_analyze(args)
+
+
+def _design(args) -> int:
+    from ptw_rt.design.build import run_design
+
+    return run_design(args)
+
+
+def _simulate(args) -> int:
+    from ptw_rt.sim.run import run_simulate
+
+    return run_simulate(args)
+
+
+def _evaluate(args) -> int:
+    from ptw_rt.eval.evaluate import run_evaluate
+
+    return run_evaluate(args)
+
+
+def _report(args) -> int:
+    from ptw_rt.eval.report import run_report
+
+    return run_report(args)
+
+
+def _run(args) -> int:
+    from ptw_rt.service.daemon import run_daemon
+
+    return run_daemon(args)
+
+
+def _replay(args) -> int:
+    from ptw_rt.apps.replay import run_replay
+
+    return run_replay(args)
+
+
+def _monitor(args) -> int:
+    from ptw_rt.apps.monitor import run_monitor
+
+    return run_monitor(args)
+
+
+def _demo(args) -> int:
+    from ptw_rt.apps.demo import run_demo
+
+    return run_demo(args)
+
+
+def _bench(args) -> int:
+    from ptw_rt.apps.bench import run_bench
+
+    return run_bench(args)
 
 
 def _speeds(text: str) -> list[float]:
@@ -25,6 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="ptw-rt",
         description="Real-time roll, rider-torque and tyre-stiffness estimator for powered two-wheelers.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
@@ -34,9 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
         description="Modal and strong-observability analysis of the vehicle model (seed 000, sec. III).",
     )
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle YAML (default: %(default)s)")
-    p.add_argument("--speeds", type=_speeds, default=[20, 50, 80, 100, 120], help="km/h, comma-separated")
+    p.add_argument(
+        "--speeds",
+        type=_speeds,
+        default=[20, 50, 80, 100, 120],
+        help="km/h, comma-separated (default: 20,50,80,100,120)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
-    p.set_defaults(handler="ptw_rt.analysis.report:run_analyze")
+    p.set_defaults(handler=_analyze)
 
     p = sub.add_parser(
         "design",
@@ -48,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--check", action="store_true", help="verify stability of the design instead of writing it")
     p.add_argument("--design-file", type=Path, default=None, help="with --check: check this file, not a fresh design")
     p.add_argument("--json", action="store_true", help="with --check: print one JSON object")
-    p.set_defaults(handler="ptw_rt.design.build:run_design")
+    p.set_defaults(handler=_design)
 
     p = sub.add_parser(
         "simulate",
@@ -69,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="plant perturbation, e.g. mass_inertia=1.2, stiffness=0.5, imu_noise=2",
     )
     p.add_argument("--plot", action="store_true", help="also draw the truth (needs the plot extra)")
-    p.set_defaults(handler="ptw_rt.sim.run:run_simulate")
+    p.set_defaults(handler=_simulate)
 
     p = sub.add_parser(
         "evaluate",
@@ -94,19 +186,23 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="with --matrix (or --all): the results document, e.g. `--matrix --markdown > docs/results.md`",
     )
-    p.set_defaults(handler="ptw_rt.eval.evaluate:run_evaluate")
+    p.set_defaults(handler=_evaluate)
 
     p = sub.add_parser(
         "report",
         help="plots of estimates vs truth (and baselines) for a scenario, with a markdown summary",
     )
-    p.add_argument("--scenario", required=True, help="scenario name")
+    p.add_argument("--scenario", required=True, help="scenario name (see `ptw-rt simulate --list`)")
     p.add_argument("--out", type=Path, required=True, help="directory for the PNGs and summary.md")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
-    p.add_argument("--design-file", type=Path, default=None)
-    p.set_defaults(handler="ptw_rt.eval.report:run_report")
+    p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
+    p.add_argument(
+        "--perturb", action="append", default=[], metavar="KEY=VALUE", help="plant perturbation, e.g. stiffness=0.5"
+    )
+    p.add_argument(
+        "--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML (default: %(default)s)"
+    )
+    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
+    p.set_defaults(handler=_report)
 
     p = sub.add_parser(
         "run",
@@ -119,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--state-file", type=Path, default=None, help="override runtime.state_file")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run forever)")
     p.add_argument("--check-config", action="store_true", help="validate config and design file, then exit")
-    p.set_defaults(handler="ptw_rt.runtime.daemon:run_daemon")
+    p.set_defaults(handler=_run)
 
     p = sub.add_parser(
         "replay",
@@ -128,51 +224,66 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("logs", nargs="+", type=Path, help="candump -L logs or directories of them")
     p.add_argument("--out", type=Path, required=True, help="output log (one input) or directory (several)")
     p.add_argument("--csv", type=Path, default=None, help="also write the decoded estimates as CSV (file or dir)")
-    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
-    p.add_argument("--design-file", type=Path, default=None)
+    p.add_argument(
+        "--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML (default: %(default)s)"
+    )
+    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
     p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
-    p.add_argument("--no-progress", action="store_true")
-    p.set_defaults(handler="ptw_rt.runtime.replay:run_replay")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (several logs)")
+    p.set_defaults(handler=_replay)
 
     p = sub.add_parser(
         "monitor",
         help="live decoder of the estimator's frames: counters, CRCs, frozen or corrupted estimator",
     )
-    p.add_argument("--interface", default="socketcan")
-    p.add_argument("--channel", default="can0")
+    p.add_argument("--interface", default="socketcan", help="python-can interface (default: %(default)s)")
+    p.add_argument("--channel", default="can0", help="CAN channel (default: %(default)s)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--json", action="store_true", help="one JSON line per status period")
-    p.set_defaults(handler="ptw_rt.runtime.monitor:run_monitor")
+    p.set_defaults(handler=_monitor)
 
     p = sub.add_parser(
         "demo",
         help="no hardware needed: a simulated ride played on a virtual CAN bus into the real daemon loop",
     )
-    p.add_argument("--scenario", default="dlc_100")
+    p.add_argument("--scenario", default="dlc_100", help="scenario name (default: %(default)s)")
     p.add_argument("--speed", type=float, default=1.0, help="playback speed (1 = real time)")
     p.add_argument("--duration", type=float, default=None, help="ride seconds (default: the scenario's, at most 25)")
-    p.add_argument("--out", type=Path, default=Path("out/demo"), help="where the logs and report go")
-    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
-    p.set_defaults(handler="ptw_rt.runtime.demo:run_demo")
+    p.add_argument(
+        "--out", type=Path, default=Path("out/demo"), help="where the logs and report go (default: %(default)s)"
+    )
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="config YAML (default: %(default)s)")
+    p.set_defaults(handler=_demo)
 
     p = sub.add_parser("bench", help="speed figures of the step, the cycle, the loop and replay (JSON)")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="one JSON object on one line (default: indented)")
     p.add_argument("--quick", action="store_true", help="shorter runs (figures less stable)")
-    p.set_defaults(handler="ptw_rt.bench:run_bench")
+    p.set_defaults(handler=_bench)
     return parser
+
+
+def missing_extra(exc: ModuleNotFoundError) -> str | None:
+    """The one-line message for a missing optional dependency, None if ``exc`` is not one."""
+    module = (exc.name or "").split(".")[0]
+    extra = EXTRA_OF_MODULE.get(module)
+    if extra is None:
+        return None
+    return f"needs the '{extra}' extra ({module} is not installed): pip install 'ptw-rt[{extra}]'"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    module_name, func_name = args.handler.split(":")
-    import importlib
-
-    handler = getattr(importlib.import_module(module_name), func_name)
     try:
-        return int(handler(args) or 0)
+        return int(args.handler(args) or 0)
     except UserFacingError as exc:
         print(f"ptw-rt {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:
+        message = missing_extra(exc)
+        if message is None:
+            raise
+        print(f"ptw-rt {args.command}: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from ptw_rt.errors import UserFacingError
-from ptw_rt.io.untrusted import decode_utf8, excerpt, read_bounded, short_text
+from ptw_rt.untrusted import decode_utf8, excerpt, read_bounded, short_text
 
 # A configuration file is a few kB; these bound the time and memory of reading a hostile one.
 MAX_CONFIG_BYTES = 256 * 1024

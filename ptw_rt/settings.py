@@ -1,21 +1,29 @@
-"""The vehicle-and-tuning file (config/scooter.yaml): load, validate, fingerprint.
+"""The config file (config/scooter.yaml): load, validate, fingerprint; one typed dataclass per section.
 
-One file holds the vehicle (physics) and the estimator tuning (design
-choices). Its canonical hash ties a design file to the exact configuration
-it was computed from.
+Four sections:
+
+* ``vehicle:`` physical parameters (``VehicleParameters``),
+* ``estimator:`` the tuning (``EstimatorTuning``),
+* ``sensors:`` the calibration of the sensors as mounted (``SensorSettings``),
+* ``runtime:`` the daemon's bus, GNSS source, timeouts, state file, logs and real-time settings
+  (``RuntimeSettings``).
+
+Only ``vehicle`` and ``estimator`` go into the canonical hash that ties a design file to the configuration it
+was computed from: changing the CAN channel or a sensor calibration must not invalidate the design.
+Every section is validated by the schema below (``ptw_rt.schema``) before it becomes a dataclass.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ptw_rt.model.parameters import VEHICLE_SCHEMA, VehicleParameters, vehicle_from_mapping
-from ptw_rt.runtime.config import RUNTIME_SCHEMA
-from ptw_rt.schema import ConfigError, Number, NumberList, Section, canonical_hash, read_yaml, validate
+from ptw_rt.schema import ConfigError, Flag, Number, NumberList, Section, Text, canonical_hash, read_yaml, validate
+from ptw_rt.untrusted import excerpt
 
 # Kinematic attitude filter (ptw_rt/core/attitude.py): roll from gyros + accelerometer, no tyre model.
 ATTITUDE_SCHEMA = Section(
@@ -129,6 +137,96 @@ SENSORS_SCHEMA = Section(
     },
 )
 
+
+class _Optional:
+    """A value of ``spec`` or YAML ``null`` (None)."""
+
+    def __init__(self, spec: Any, doc: str = "") -> None:
+        self.spec = spec
+        self.doc = doc or getattr(spec, "doc", "")
+
+    def check(self, key: str, value: Any) -> Any:
+        return None if value is None else self.spec.check(key, value)
+
+
+class _CpuList(NumberList):
+    """Distinct CPU numbers."""
+
+    def check(self, key: str, value: Any) -> tuple:
+        cpus = super().check(key, value)
+        if len(set(cpus)) != len(cpus):
+            raise ConfigError(f"{key}: CPU numbers must be distinct, got {excerpt(list(value))}")
+        return cpus
+
+
+REALTIME_SCHEMA = Section(
+    fields={},
+    optional={
+        "priority": (
+            _Optional(
+                Number(
+                    integer=True,
+                    ge=1,
+                    le=99,
+                    doc="SCHED_FIFO priority of the loop thread (1..99); null leaves the scheduling to systemd",
+                )
+            ),
+            None,
+        ),
+        "cpus": (
+            _Optional(
+                _CpuList(
+                    Number(integer=True, ge=0, le=4095),
+                    min_len=1,
+                    doc="CPUs the loop thread may run on (e.g. [1], an isolated core); null = no change",
+                )
+            ),
+            None,
+        ),
+        "lock_memory": (Flag(doc="mlockall(MCL_CURRENT|MCL_FUTURE): no page faults in the loop"), False),
+    },
+    doc="Real-time settings applied by the daemon at start (each one optional, never fatal)",
+)
+
+BUS_SCHEMA = Section(
+    fields={},
+    optional={
+        "interface": (Text(doc="python-can interface: socketcan, virtual, ..."), "socketcan"),
+        "channel": (Text(doc="e.g. can0, vcan0, or a virtual bus name"), "can0"),
+        "bitrate": (Number("bit/s", integer=True, gt=0), 500000),
+        "send_retries": (Number("", integer=True, ge=0, le=10), 1),
+    },
+)
+
+GPS_SCHEMA = Section(
+    fields={},
+    optional={
+        "source": (
+            Text(choices=("can", "serial"), doc="can (GPS_Velocity frames) or serial (NMEA 0183 receiver)"),
+            "can",
+        ),
+        "serial_port": (Text(doc="e.g. /dev/serial/by-id/usb-u-blox_GNSS_receiver-if00"), "/dev/ttyACM0"),
+        "serial_baudrate": (Number("baud", integer=True, gt=0), 9600),
+    },
+)
+
+# The daemon's own section: changing the CAN channel must not invalidate the design file, so it is not hashed.
+RUNTIME_SCHEMA = Section(
+    fields={},
+    optional={
+        "bus": (BUS_SCHEMA, BUS_SCHEMA.check("runtime.bus", {})),
+        "gps": (GPS_SCHEMA, GPS_SCHEMA.check("runtime.gps", {})),
+        # a message is stale after this many of its DBC cycle times without a valid frame
+        "stale_after_periods": (Number("", gt=1, le=100), 3.0),
+        "state_file": (Text(doc="learned tyre stiffness, saved atomically"), "/var/lib/ptw-rt/state.json"),
+        "state_save_interval_s": (Number("s", gt=0), 60.0),
+        "health_log_interval_s": (Number("s", gt=0), 10.0),
+        "log_repeat_interval_s": (Number("s", ge=0), 5.0),
+        "log_level": (Text(choices=("DEBUG", "INFO", "WARNING", "ERROR")), "INFO"),
+        "realtime": (REALTIME_SCHEMA, REALTIME_SCHEMA.check("runtime.realtime", {})),
+    },
+)
+
 CONFIG_SCHEMA = Section(
     {"vehicle": VEHICLE_SCHEMA, "estimator": ESTIMATOR_SCHEMA},
     optional={
@@ -220,13 +318,97 @@ class EstimatorTuning:
 
 
 @dataclass(frozen=True)
+class SensorSettings:
+    """``sensors:``: calibration of the sensors as mounted on this vehicle (read by the estimator's conditioning)."""
+
+    steer_zero_count: float  # encoder count with the wheel straight ahead
+    steer_counts_per_rev: int
+    imu_height: float  # m above the ground
+    imu_forward: float  # m ahead of the centre of mass
+    gps_latency: float  # s
+    speed_filter_gain: float
+    speed_bias_gain: float
+    gyro_calibration_speed: float  # m/s: below it the gyros read their bias
+    gyro_calibration_time_constant: float  # s
+    gyro_calibration_max_rate: float  # rad/s
+
+
+@dataclass(frozen=True)
+class BusSettings:
+    """``runtime.bus:``"""
+
+    interface: str  # python-can interface
+    channel: str
+    bitrate: int  # bit/s, for interfaces that set it themselves (not socketcan: ip link does)
+    send_retries: int
+
+
+@dataclass(frozen=True)
+class GpsSettings:
+    """``runtime.gps:``: where the speed comes from."""
+
+    source: str  # "can" (GPS_Velocity frames) or "serial" (NMEA 0183 RMC/VTG receiver)
+    serial_port: str
+    serial_baudrate: int
+
+
+@dataclass(frozen=True)
+class RealtimeSettings:
+    """``runtime.realtime:``; None/False: leave as it is."""
+
+    priority: int | None  # SCHED_FIFO priority of the loop thread
+    cpus: tuple[int, ...] | None  # CPU affinity of the loop thread
+    lock_memory: bool
+
+
+@dataclass(frozen=True)
+class RuntimeSettings:
+    """``runtime:``: the daemon's own settings (not part of the config hash)."""
+
+    bus: BusSettings
+    gps: GpsSettings
+    stale_after_periods: float
+    state_file: str | None
+    state_save_interval_s: float
+    health_log_interval_s: float
+    log_repeat_interval_s: float
+    log_level: str
+    realtime: RealtimeSettings
+
+
+@dataclass(frozen=True)
 class Settings:
     source: str
     vehicle: VehicleParameters
     estimator: EstimatorTuning
     config_hash: str
-    sensors: dict[str, Any]
-    runtime: dict[str, Any]
+    sensors: SensorSettings
+    runtime: RuntimeSettings
+
+
+def _typed(cls: type, values: dict[str, Any]) -> Any:
+    """A section's dataclass from its validated mapping (the schema has checked every key and value)."""
+    return cls(**{f.name: values[f.name] for f in fields(cls)})
+
+
+def sensors_from_mapping(values: dict[str, Any]) -> SensorSettings:
+    return _typed(SensorSettings, values)
+
+
+def runtime_from_mapping(values: dict[str, Any]) -> RuntimeSettings:
+    return RuntimeSettings(
+        **{
+            **{k: v for k, v in values.items() if k not in ("bus", "gps", "realtime")},
+            "bus": _typed(BusSettings, values["bus"]),
+            "gps": _typed(GpsSettings, values["gps"]),
+            "realtime": _typed(RealtimeSettings, values["realtime"]),
+        }
+    )
+
+
+def runtime_defaults() -> RuntimeSettings:
+    """The ``runtime:`` section of a config file that has none."""
+    return runtime_from_mapping(RUNTIME_SCHEMA.check("runtime", {}))
 
 
 def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
@@ -275,8 +457,8 @@ def settings_from_mapping(doc: Any, source: str) -> Settings:
         vehicle=vehicle,
         estimator=_tuning(validated["estimator"], source),
         config_hash=canonical_hash({k: validated[k] for k in DESIGN_SECTIONS}),
-        sensors=validated["sensors"],
-        runtime=validated["runtime"],
+        sensors=sensors_from_mapping(validated["sensors"]),
+        runtime=runtime_from_mapping(validated["runtime"]),
     )
 
 

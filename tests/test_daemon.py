@@ -17,7 +17,7 @@ from ptw_rt.cli import main as cli_main
 from ptw_rt.core.layout import MODE_CONVERGING, MODE_DEGRADED, MODE_FAULT, MODE_VALID, REASON_SEND_FAILURE
 from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.paths import DEFAULT_CONFIG
-from ptw_rt.runtime.daemon import Daemon, load_daemon_settings, run_daemon
+from ptw_rt.service.daemon import Daemon, load_daemon_settings, run_daemon
 
 OK_MODES = (MODE_VALID, MODE_CONVERGING)
 BAD_MODES = (MODE_DEGRADED, MODE_FAULT)
@@ -47,7 +47,7 @@ def _settings(channel: str, tmp_path: Path):
     s = load_daemon_settings(
         DEFAULT_CONFIG, {"interface": "virtual", "channel": channel, "state_file": tmp_path / "state.json"}
     )
-    runtime = {**s.runtime, "health_log_interval_s": 1.0}
+    runtime = dataclasses.replace(s.runtime, health_log_interval_s=1.0)
     # shorter supervisor times (not part of what the design file depends on numerically) keep the test short
     est = dataclasses.replace(s.estimator, converge_time=1.0, reason_hold_time=0.3)
     return dataclasses.replace(s, runtime=runtime, estimator=est)

@@ -66,7 +66,7 @@ def test_demo_accuracy_is_that_of_the_estimator(demo_run):
 def test_demo_rejects_bad_options_clearly(option, tmp_path):
     from argparse import Namespace
 
-    from ptw_rt.runtime.demo import run_demo
+    from ptw_rt.apps.demo import run_demo
 
     args = Namespace(scenario="slalom_30", speed=1.0, duration=5.0, out=Path(tmp_path), config=None)
     for key, value in option.items():

@@ -218,7 +218,7 @@ def test_cache_warm_start_compiles_nothing(tmp_path):
         """
         import json, time
         t0 = time.perf_counter()
-        from ptw_rt.runtime.cycle import build_runner
+        from ptw_rt.edge.cycle import build_runner
         from ptw_rt.core.estimator import packed_step  # the entry point called from Python
         r = build_runner("config/scooter.yaml")
         r.cycle(0.01)

@@ -10,7 +10,7 @@ import re
 import pytest
 
 from ptw_rt.errors import UserFacingError
-from ptw_rt.runtime.logs import HealthSummary, RateLimitedLog, fields, format_fields, setup_logging
+from ptw_rt.service.logs import HealthSummary, RateLimitedLog, fields, format_fields, setup_logging
 
 ISO = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z"
 

@@ -204,6 +204,6 @@ def test_evaluate_without_the_eval_extra(monkeypatch):
 def test_the_daemon_never_loads_imufusion():
     import subprocess
 
-    code = "import sys, ptw_rt.runtime.daemon, ptw_rt.cli, ptw_rt.eval.evaluate; print('imufusion' in sys.modules)"
+    code = "import sys, ptw_rt.service.daemon, ptw_rt.cli, ptw_rt.eval.evaluate; print('imufusion' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"

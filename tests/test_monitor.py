@@ -11,10 +11,10 @@ import time
 
 import pytest
 
+from ptw_rt.apps import monitor as monitor_mod
+from ptw_rt.apps.monitor import Monitor, run_monitor
 from ptw_rt.core.layout import MODE_CONVERGING, MODE_VALID
 from ptw_rt.io.dbc import FrameCodec
-from ptw_rt.runtime import monitor as monitor_mod
-from ptw_rt.runtime.monitor import Monitor, run_monitor
 
 
 @pytest.fixture(scope="module")

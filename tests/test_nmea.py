@@ -217,10 +217,23 @@ def test_reader_receives_sentences(reader_factory, thread_errors):
     time.sleep(0.05)
     pty.write(VTG[20:] + "noise\r\n" + RMC[:-5] + "00\r\n")
     assert wait_for(lambda: reader.stats()["checksum_errors"] == 1)
-    assert reader.latest()[1:] == (pytest.approx(18.52 / 3.6), pytest.approx(77.52), 2)
+    # one solution per epoch: the VTG after an RMC repeats its velocity and is not taken
+    assert reader.latest()[1:] == (pytest.approx(19.438 * KN), pytest.approx(77.52), 2)
     stats = reader.stats()
     assert stats["parsed"] == 2 and stats["used"] == 2 and stats["garbage"] == 1
     assert stats["opens"] == 1 and stats["disconnects"] == 0 and stats["bytes"] > 0
+    assert thread_errors == []
+
+
+def test_reader_takes_vtg_without_rmc(reader_factory, thread_errors, monkeypatch):
+    monkeypatch.setattr(nmea, "_RMC_PREFERRED_S", 0.0)  # as if the last RMC were long ago
+    pty = Pty()
+    reader_factory.ptys.append(pty)
+    reader = reader_factory(pty.path)
+    assert wait_for(lambda: reader.stats()["connected"])
+    pty.write(RMC + VTG)
+    assert wait_for(lambda: reader.stats()["used"] == 2)
+    assert reader.latest()[1:] == (pytest.approx(18.52 / 3.6), pytest.approx(77.52), 2)
     assert thread_errors == []
 
 

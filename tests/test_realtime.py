@@ -8,9 +8,10 @@ import resource
 
 import pytest
 
-from ptw_rt.runtime import realtime
-from ptw_rt.runtime.realtime import REALTIME_SCHEMA, apply_realtime, realtime_state
 from ptw_rt.schema import ConfigError
+from ptw_rt.service import realtime
+from ptw_rt.service.realtime import apply_realtime, realtime_state
+from ptw_rt.settings import REALTIME_SCHEMA
 
 NOBODY = 65534
 
@@ -74,7 +75,7 @@ def test_refused_settings_are_warnings_never_exceptions(monkeypatch, caplog):
     monkeypatch.setattr(realtime.os, "sched_setaffinity", eperm)
     monkeypatch.setattr(realtime.resource, "getrlimit", lambda which: (65536, 65536))
     monkeypatch.setattr(realtime, "_has_capability", lambda bit: False)
-    with caplog.at_level("WARNING", logger="ptw_rt.runtime.realtime"):
+    with caplog.at_level("WARNING", logger="ptw_rt.service.realtime"):
         warnings = apply_realtime(10, [0], True)
     assert [w.split(":")[0] for w in warnings] == [
         "SCHED_FIFO priority 10",

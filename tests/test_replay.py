@@ -10,12 +10,12 @@ import shutil
 
 import pytest
 
+from ptw_rt.apps.replay import replay_log, run_replay
 from ptw_rt.core.layout import ESTIMATE_NAMES
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import read_log
 from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.paths import DEFAULT_CONFIG
-from ptw_rt.runtime.replay import replay_log, run_replay
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import uuid
 
 import pytest
 
-from ptw_rt.runtime.sdnotify import SystemdNotifier, WatchdogGate
+from ptw_rt.service.sdnotify import SystemdNotifier, WatchdogGate
 
 
 class Receiver:

@@ -140,10 +140,10 @@ def test_realtime_limits(service):
 
 
 def test_state_and_cache_directories(service):
-    from ptw_rt.runtime.config import runtime_defaults
+    from ptw_rt.settings import runtime_defaults
 
     state_dir = _one(service, "StateDirectory").split()[0]
-    state_file = PurePosixPath(runtime_defaults()["state_file"])
+    state_file = PurePosixPath(runtime_defaults().state_file)
     assert state_file.parent == PurePosixPath("/var/lib") / state_dir, (
         f"runtime.state_file default {state_file} is not inside StateDirectory={state_dir} (/var/lib/{state_dir}): "
         "ProtectSystem=strict would make it read-only"

@@ -860,10 +860,10 @@ class Estimator:
             "att_prm": att.attitude_params(
                 self.sample_time,
                 settings.vehicle.g,
-                sens["imu_height"],
-                sens["imu_forward"],
+                sens.imu_height,
+                sens.imu_forward,
                 settings.estimator.attitude,
-                sens["gps_latency"],
+                sens.gps_latency,
             ),
         }
         tables = [np.asarray(constants[n] if n in constants else getattr(design, n)) for n, _ in TABLE_PARTS]

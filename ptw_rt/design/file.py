@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.errors import UserFacingError
-from ptw_rt.io.untrusted import excerpt, open_binary, short_text
+from ptw_rt.untrusted import excerpt, open_binary, short_text
 
 FORMAT_VERSION = 5
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"

@@ -22,10 +22,10 @@ import numpy as np
 
 from ptw_rt.core import force_observers as fo
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table, used on every line
+from ptw_rt.edge.cycle import build_runner, drive_log
 from ptw_rt.errors import UserFacingError
 from ptw_rt.output import emit
 from ptw_rt.paths import DEFAULT_CONFIG
-from ptw_rt.runtime.cycle import build_runner, drive_log
 from ptw_rt.sim.recording import encode_frames
 from ptw_rt.sim.ride import Ride, parse_perturbations, simulate
 from ptw_rt.sim.scenarios import SCENARIOS
@@ -196,7 +196,7 @@ def _ahrs_peer(samples: np.ndarray, dt: float, sensors: dict) -> np.ndarray | No
 
     if not ahrs_peer.available():
         return None
-    out = ahrs_peer.run_peer(samples, dt, sensors["imu_height"], sensors["imu_forward"], sensors["gps_latency"])
+    out = ahrs_peer.run_peer(samples, dt, sensors.imu_height, sensors.imu_forward, sensors.gps_latency)
     return out["roll"]
 
 

@@ -39,7 +39,7 @@ from types import TracebackType
 from typing import IO, Any, NamedTuple
 
 from ptw_rt.errors import UserFacingError
-from ptw_rt.io.untrusted import open_binary
+from ptw_rt.untrusted import open_binary
 
 __all__ = [
     "MAX_LINE_CHARS",

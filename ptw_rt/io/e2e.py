@@ -18,6 +18,7 @@ from enum import IntEnum
 
 __all__ = [
     "COUNTER_MAX",
+    "CounterChecker",
     "CRC8_POLY",
     "P11Checker",
     "P11Status",
@@ -142,38 +143,70 @@ class P11Status(IntEnum):
     INITIAL = 5  # first valid frame after construction / reset: sequence not yet known
 
 
-class P11Checker:
-    """Stateful Profile 11 receiver check for one Data ID: CRC, counter range, repetition and jumps.
+class CounterChecker:
+    """Receiver-side check of one message's rolling counter: in sequence, repeated, some lost, out of sequence.
 
-    ``check(data)`` returns ``ERROR`` for a wrong CRC (corrupted or misrouted frame) or counter 15,
-    ``REPEATED`` if the counter did not advance (frozen sender), ``OK`` for delta 1, ``OKSOMELOST`` for
-    2..``max_delta_counter`` and ``WRONGSEQUENCE`` beyond. Only frames that pass the CRC update the state.
+    The one counter check of the project: the input tracker (plain 4-bit input counters, ``modulus=16``), the
+    monitor and the demo (estimator outputs, ``modulus=15``) and ``P11Checker`` all use it.
+    ``step(counter)`` returns ``INITIAL`` for the first counter after construction / ``reset``, ``REPEATED`` if
+    it did not advance (frozen sender, duplicated frame), ``OK`` for an advance of 1, ``OKSOMELOST`` for
+    2..``max_delta_counter`` and ``WRONGSEQUENCE`` beyond. ``frame_lost()`` tells it that a frame of the message
+    arrived but failed its other checks (CRC, decoding): the next counter may then be one further ahead.
     """
 
-    __slots__ = ("data_id", "max_delta_counter", "_last")
+    __slots__ = ("modulus", "max_delta_counter", "_last", "_lost")
+
+    def __init__(self, modulus: int = _COUNTER_MODULUS, max_delta_counter: int = 1) -> None:
+        if not 1 <= max_delta_counter < modulus:
+            raise ValueError(f"max_delta_counter must be 1..{modulus - 1}")
+        self.modulus = modulus
+        self.max_delta_counter = max_delta_counter
+        self._last: int | None = None
+        self._lost = 0
+
+    def reset(self) -> None:
+        self._last = None
+        self._lost = 0
+
+    @property
+    def last(self) -> int | None:
+        """The last counter stepped, None before the first."""
+        return self._last
+
+    def frame_lost(self) -> None:
+        self._lost += 1
+
+    def step(self, counter: int) -> P11Status:
+        last, self._last = self._last, counter
+        lost, self._lost = self._lost, 0
+        if last is None:
+            return P11Status.INITIAL
+        delta = (counter - last) % self.modulus
+        if delta == 1:
+            return P11Status.OK
+        if delta == 0:
+            return P11Status.REPEATED
+        if delta <= self.max_delta_counter + lost:
+            return P11Status.OKSOMELOST
+        return P11Status.WRONGSEQUENCE
+
+
+class P11Checker(CounterChecker):
+    """Stateful Profile 11 receiver check for one Data ID: CRC, counter range, repetition and jumps.
+
+    ``check(data)`` returns ``ERROR`` for a wrong CRC (corrupted or misrouted frame) or counter 15, else the
+    counter's ``CounterChecker.step`` status. Only frames that pass the CRC update the state.
+    """
+
+    __slots__ = ("data_id",)
 
     def __init__(self, data_id: int, max_delta_counter: int = 1) -> None:
         if not 1 <= max_delta_counter <= COUNTER_MAX:
             raise ValueError(f"max_delta_counter must be 1..{COUNTER_MAX}")
+        super().__init__(_COUNTER_MODULUS, max_delta_counter)
         self.data_id = data_id
-        self.max_delta_counter = max_delta_counter
-        self._last: int | None = None
-
-    def reset(self) -> None:
-        self._last = None
 
     def check(self, data: bytes) -> P11Status:
         if not check_p11(self.data_id, data):  # wrong CRC or counter 15
             return P11Status.ERROR
-        counter = data[1] & 0x0F
-        last, self._last = self._last, counter
-        if last is None:
-            return P11Status.INITIAL
-        delta = counter_delta(last, counter)
-        if delta == 0:
-            return P11Status.REPEATED
-        if delta == 1:
-            return P11Status.OK
-        if delta <= self.max_delta_counter:
-            return P11Status.OKSOMELOST
-        return P11Status.WRONGSEQUENCE
+        return self.step(data[1] & 0x0F)

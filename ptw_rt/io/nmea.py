@@ -52,6 +52,7 @@ log = logging.getLogger(__name__)
 FIX_NONE, FIX_DR, FIX_2D, FIX_3D = 0, 1, 2, 3
 KNOT_MPS = 1852.0 / 3600.0
 MAX_LINE = 164  # NMEA allows 82 characters; leave room for long proprietary sentences
+_RMC_PREFERRED_S = 2.0  # VTG is used only when no RMC came for this long
 _GSA_VALID_FOR = 4  # velocity sentences: a GSA older than this no longer upgrades the fix (receiver stopped it)
 _MODE_FIX = {"N": FIX_NONE, "M": FIX_NONE, "S": FIX_NONE, "E": FIX_DR}  # anything else (A, D, F, R, P): 2D
 _INSTALL_HINT = "pip install 'ptw-rt[gnss]'"
@@ -199,7 +200,7 @@ class SerialGnssReader:
     retried every ``retry_s`` until it works again; nothing is raised out of the thread. Use a stable path such as
     ``/dev/serial/by-id/...`` so a replugged receiver comes back under the same name.
 
-    Start it BEFORE :func:`ptw_rt.runtime.realtime.apply_realtime`: threads inherit the SCHED_FIFO policy of the
+    Start it BEFORE :func:`ptw_rt.service.realtime.apply_realtime`: threads inherit the SCHED_FIFO policy of the
     thread that creates them, and this one should not compete with the loop.
     Raises :class:`UserFacingError` when pynmea2 (or pyserial) is not installed.
     """
@@ -225,6 +226,7 @@ class SerialGnssReader:
         self.read_timeout_s = float(read_timeout_s)
         self._clock = clock
         self._latest: tuple[float, float, float, int] | None = None
+        self._last_rmc = -math.inf
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -263,6 +265,15 @@ class SerialGnssReader:
     @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def connected(self) -> bool:
+        """The port is open (read without the lock: a bool, for the 100 Hz loop)."""
+        return self._connected
+
+    @property
+    def last_error(self) -> str | None:
+        return self._last_error
 
     def latest(self) -> tuple[float, float, float, int] | None:
         """``(monotonic_time_received, speed_mps, course_deg, fix_type)`` of the newest RMC/VTG, or None yet.
@@ -329,6 +340,7 @@ class SerialGnssReader:
                     "GNSS receiver %s cannot be opened (%s); retrying every %.1f s", self.port, exc, self.retry_s
                 )
             return None
+        self._last_rmc = -math.inf  # a replugged receiver may be another one, configured otherwise
         with self._lock:
             self._opens += 1
             self._connected = True
@@ -336,13 +348,22 @@ class SerialGnssReader:
         return port
 
     def _consume(self, data: bytes) -> bytes:
-        """Feed every complete line of ``data`` to the parser; return the incomplete rest."""
+        """Feed every complete line of ``data`` to the parser; return the incomplete rest.
+
+        One solution per epoch: a receiver that sends RMC and VTG reports the same velocity twice, so a VTG is
+        taken only while no RMC has come for ``_RMC_PREFERRED_S`` (a receiver configured for VTG alone).
+        """
         *lines, rest = data.split(b"\n")
         now = self._clock()
         for line in lines:
             velocity = self.parser.feed(line)
-            if velocity is not None:
-                self._latest = (now, velocity.speed_mps, velocity.course_deg, velocity.fix_type)
+            if velocity is None:
+                continue
+            if velocity.sentence == "RMC":
+                self._last_rmc = now
+            elif now - self._last_rmc < _RMC_PREFERRED_S:
+                continue
+            self._latest = (now, velocity.speed_mps, velocity.course_deg, velocity.fix_type)
         with self._lock:
             self._bytes += len(data) - len(rest)
         if len(rest) > MAX_LINE:  # no newline in sight: noise at the wrong baud rate, drop it

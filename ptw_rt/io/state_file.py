@@ -8,7 +8,7 @@ fsyncs it, ``os.replace``-s it over the target and fsyncs the directory.
 ``load_state`` never raises for bad content: a missing, unreadable, corrupt or foreign file, a file
 written for another configuration (config hash mismatch) or one holding a value outside its bounds gives
 ``(None, reason)`` and the daemon starts from the configured nominal stiffnesses. The file is untrusted
-(``ptw_rt.io.untrusted``): only a regular file is read (a FIFO at the path never blocks start-up), at most
+(``ptw_rt.untrusted``): only a regular file is read (a FIFO at the path never blocks start-up), at most
 ``MAX_STATE_BYTES``, nesting at most ``MAX_STATE_DEPTH`` levels, checked before ``json.loads`` recurses.
 
 Validation is driven by ``STATE_FIELDS``, one row per learned value (its JSON object and key, unit, shape,
@@ -39,7 +39,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from ptw_rt.io.untrusted import check_nesting, decode_utf8, excerpt, read_bounded
+from ptw_rt.untrusted import check_nesting, decode_utf8, excerpt, read_bounded
 
 __all__ = [
     "STATE_FORMAT",

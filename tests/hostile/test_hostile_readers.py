@@ -15,9 +15,9 @@ from ptw_rt.design.file import DesignFileError, load_design
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import MAX_LINE_CHARS, read_log
 from ptw_rt.io.state_file import load_state, restore_state, save_state, stiffness_bounds
-from ptw_rt.io.untrusted import check_nesting, excerpt
 from ptw_rt.schema import ConfigError
 from ptw_rt.settings import load_settings
+from ptw_rt.untrusted import check_nesting, excerpt
 
 from .conftest import clean_log_lines, state_doc
 
@@ -377,7 +377,7 @@ def test_check_nesting_ignores_brackets_in_strings():
 
 
 def test_non_regular_file_kinds_named(tmp_path):
-    from ptw_rt.io.untrusted import read_bounded
+    from ptw_rt.untrusted import read_bounded
 
     fifo = tmp_path / "f"
     os.mkfifo(fifo)

@@ -25,66 +25,12 @@ import platform
 import resource
 from typing import Any
 
-from ptw_rt.io.untrusted import excerpt
-from ptw_rt.schema import ConfigError, Flag, Number, NumberList, Section
-
-__all__ = ["REALTIME_SCHEMA", "apply_realtime", "realtime_state", "restore_scheduling", "thread_scheduling"]
+__all__ = ["apply_realtime", "realtime_state", "restore_scheduling", "thread_scheduling"]
 
 log = logging.getLogger(__name__)
 
 _FIFO_MAX = 99
 _CAP_IPC_LOCK = 14
-
-
-class _Optional:
-    """A value of ``spec`` or YAML ``null`` (None)."""
-
-    def __init__(self, spec: Any, doc: str = "") -> None:
-        self.spec = spec
-        self.doc = doc or getattr(spec, "doc", "")
-
-    def check(self, key: str, value: Any) -> Any:
-        return None if value is None else self.spec.check(key, value)
-
-
-class _CpuList(NumberList):
-    """Distinct CPU numbers."""
-
-    def check(self, key: str, value: Any) -> tuple:
-        cpus = super().check(key, value)
-        if len(set(cpus)) != len(cpus):
-            raise ConfigError(f"{key}: CPU numbers must be distinct, got {excerpt(list(value))}")
-        return cpus
-
-
-REALTIME_SCHEMA = Section(
-    fields={},
-    optional={
-        "priority": (
-            _Optional(
-                Number(
-                    integer=True,
-                    ge=1,
-                    le=_FIFO_MAX,
-                    doc="SCHED_FIFO priority of the loop thread (1..99); null leaves the scheduling to systemd",
-                )
-            ),
-            None,
-        ),
-        "cpus": (
-            _Optional(
-                _CpuList(
-                    Number(integer=True, ge=0, le=4095),
-                    min_len=1,
-                    doc="CPUs the loop thread may run on (e.g. [1], an isolated core); null = no change",
-                )
-            ),
-            None,
-        ),
-        "lock_memory": (Flag(doc="mlockall(MCL_CURRENT|MCL_FUTURE): no page faults in the loop"), False),
-    },
-    doc="Real-time settings applied by the daemon at start (each one optional, never fatal)",
-)
 
 
 def apply_realtime(priority: int | None, cpus: list[int] | None, lock_memory: bool) -> list[str]:

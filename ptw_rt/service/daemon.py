@@ -2,20 +2,26 @@
 
 One cycle (every ``sample_time`` of ``time.monotonic()``, deadlines on a fixed grid so nothing drifts):
 
-    frames received since the last cycle -> CycleRunner.cycle -> OutputEncoder -> bus.send
+    frames received since the last cycle (+ the serial GNSS receiver's newest solution) -> CycleRunner.run -> bus.send
 
 * A reader thread receives the input frames (the bus filters to the DBC's input ids; on the virtual bus python-can
   filters in software, which a ``recv(timeout=0)`` drain would mistake for an empty queue) and stamps them with
   the monotonic clock, so the tracker's timeouts use the loop's clock.
 * Overrun: when the loop wakes more than one period late it does not burst through the missed cycles: it
   resynchronises to the grid, counts the missed cycles (EST_Status.OverrunCount) and raises REASON_OVERRUN for
-  a status period.
+  a status period (in EST_Status.ReasonBits, beside the estimator's own bits: the process's health is reported at
+  the edge and never goes through the estimator).
 * A failed send (``can.CanError``/``OSError``) is retried ``send_retries`` times, counted, raises
   REASON_SEND_FAILURE for a second, and is never fatal. A bus that disappears (the reader fails) is closed and
   reopened every second while the loop keeps its period.
 * SIGTERM/SIGINT stop the loop: a last EST_Status with EST_Status_Valid = 0, the learned stiffness saved.
   SIGHUP reloads the config file (kept running with the old one if the new one is invalid).
 * sd_notify: READY after the first published cycle, STATUS every second, WATCHDOG only while cycles are healthy.
+* ``runtime.gps.source: serial``: a reader thread (``ptw_rt.io.nmea.SerialGnssReader``, started before the loop
+  takes its real-time priority) parses RMC/VTG from ``runtime.gps.serial_port``; each cycle takes its newest
+  solution as a GPS_Velocity would be taken (same Sample slots, range checks, timeout). An unplugged receiver
+  makes GPS_Velocity stale in the next cycle (EST_Status.SensorTimeouts, DEGRADED), a replugged one is reopened
+  every second; checksum errors and garbage lines count as decode errors of GPS_Velocity and are logged.
 
 ``Daemon`` is usable in a thread of another program (tests, demo): ``run(duration)`` / ``stop()``; only
 ``run_daemon`` installs signal handlers.
@@ -47,16 +53,16 @@ from ptw_rt.core.layout import (
     V_CORNERING,
     reason_names,
 )
+from ptw_rt.edge.cycle import CycleRunner, build_runner
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.dbc import DbcError
+from ptw_rt.io.nmea import NmeaParser, SerialGnssReader
 from ptw_rt.io.state_file import restore_state, save_state, stiffness_bounds
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
-from ptw_rt.runtime.cycle import CycleRunner, build_runner
-from ptw_rt.runtime.logs import HealthSummary, RateLimitedLog, setup_logging
-from ptw_rt.runtime.outputs import OutputEncoder
-from ptw_rt.runtime.realtime import apply_realtime, restore_scheduling, thread_scheduling
-from ptw_rt.runtime.sdnotify import SystemdNotifier, WatchdogGate
-from ptw_rt.settings import Settings, load_settings
+from ptw_rt.service.logs import HealthSummary, RateLimitedLog, setup_logging
+from ptw_rt.service.realtime import apply_realtime, restore_scheduling, thread_scheduling
+from ptw_rt.service.sdnotify import SystemdNotifier, WatchdogGate
+from ptw_rt.settings import BusSettings, Settings, load_settings
 
 __all__ = ["Daemon", "load_daemon_settings", "run_daemon"]
 
@@ -69,20 +75,20 @@ _BITRATE_INTERFACES = frozenset({"pcan", "kvaser", "ixxat", "vector", "slcan", "
 _RX_QUEUE_MAX = 20000
 
 
-def _open_bus(bus_cfg: dict[str, Any], filters: list[dict]) -> can.BusABC:
+def _open_bus(bus_cfg: BusSettings, filters: list[dict]) -> can.BusABC:
     """Open the configured bus. A bad interface name is a user error; a missing device raises can.CanError/OSError."""
     kwargs: dict[str, Any] = {
-        "interface": bus_cfg["interface"],
-        "channel": bus_cfg["channel"],
+        "interface": bus_cfg.interface,
+        "channel": bus_cfg.channel,
         "can_filters": filters,
         "receive_own_messages": False,
     }
-    if bus_cfg["interface"] in _BITRATE_INTERFACES:
-        kwargs["bitrate"] = bus_cfg["bitrate"]
+    if bus_cfg.interface in _BITRATE_INTERFACES:
+        kwargs["bitrate"] = bus_cfg.bitrate
     try:
         return can.Bus(**kwargs)
     except (can.CanInterfaceNotImplementedError, ImportError, NotImplementedError) as exc:
-        raise UserFacingError(f"CAN interface {bus_cfg['interface']!r} is not available: {exc}") from exc
+        raise UserFacingError(f"CAN interface {bus_cfg.interface!r} is not available: {exc}") from exc
 
 
 class _Reader(threading.Thread):
@@ -131,12 +137,11 @@ class Daemon:
         self.runner: CycleRunner = _build(self.config_path, design_file, dbc, settings)
         self.codec = self.runner.codec
         self.dt = self.runner.sample_time
-        self.encoder = OutputEncoder(self.codec, self.dt)
-        self.status_period = self.encoder.periods["EST_Status"]
+        self.status_period = self.runner.encoder.periods["EST_Status"]
         self.filters = self.codec.can_filters(self.codec.input_messages)
         self.notifier = notifier if notifier is not None else SystemdNotifier()
         self.watchdog = WatchdogGate(self.notifier)
-        self.rate_log = RateLimitedLog(log, settings.runtime["log_repeat_interval_s"])
+        self.rate_log = RateLimitedLog(log, settings.runtime.log_repeat_interval_s)
         self.bus: can.BusABC | None = None
         self._reader: _Reader | None = None
         self._rx: collections.deque = collections.deque(maxlen=_RX_QUEUE_MAX)
@@ -159,6 +164,13 @@ class Daemon:
         self.on_cycle = None
         self.state_note = "no state file configured"
         self.realtime_warnings: list[str] = []  # what apply_realtime could not put in force at the last run()
+        self.gnss: SerialGnssReader | None = None
+        if settings.runtime.gps.source == "serial":
+            gps = settings.runtime.gps
+            self.gnss = SerialGnssReader(gps.serial_port, gps.serial_baudrate)  # UserFacingError without pynmea2
+        self._gnss_taken = None  # receive time of the last solution taken into a cycle
+        self._gnss_connected = False
+        self._gnss_bad = 0  # checksum errors + garbage lines seen so far
         self._saver: threading.Thread | None = None
         self._warm_up()
         self._restore_state()
@@ -179,16 +191,16 @@ class Daemon:
     # ------------------------------------------------------------------ bus
 
     def _try_open(self) -> bool:
-        cfg = self.settings.runtime["bus"]
+        cfg = self.settings.runtime.bus
         try:
             bus = _open_bus(cfg, self.filters)
         except (can.CanError, OSError, ValueError) as exc:
-            self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg['interface']}:{cfg['channel']}: {exc}", 0.0)
+            self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", 0.0)
             return False
         self.bus = bus
         self._reader = _Reader(bus, self._rx)
         self._reader.start()
-        log.info("CAN bus %s:%s open", cfg["interface"], cfg["channel"])
+        log.info("CAN bus %s:%s open", cfg.interface, cfg.channel)
         return True
 
     def _close_bus(self) -> None:
@@ -209,7 +221,7 @@ class Daemon:
         bus = self.bus
         if bus is None:
             return False
-        retries = self.settings.runtime["bus"]["send_retries"]
+        retries = self.settings.runtime.bus.send_retries
         ok = True
         for fid, data in frames:
             msg = can.Message(arbitration_id=fid, data=data, is_extended_id=False)
@@ -227,6 +239,37 @@ class Daemon:
                 break
         return ok
 
+    def _poll_gnss(self, runner: CycleRunner, gnss: SerialGnssReader, now: float) -> None:
+        """The serial receiver's newest solution into this cycle, its unplug and its bad lines (cheap: no lock)."""
+        connected = gnss.connected
+        if connected != self._gnss_connected:
+            self._gnss_connected = connected
+            if not connected:  # unplugged: stale now, not after the timeout
+                runner.tracker.lost("GPS_Velocity")
+                self.rate_log.error("gnss_lost", f"GNSS receiver {gnss.port} lost: {gnss.last_error}", now)
+            else:
+                log.info("GNSS receiver %s connected", gnss.port)
+        bad = gnss.parser.checksum_errors + gnss.parser.garbage
+        if bad != self._gnss_bad:
+            for _ in range(bad - self._gnss_bad):
+                runner.tracker.decode_error("GPS_Velocity")
+            self._gnss_bad = bad
+            p = gnss.parser
+            self.rate_log.warn(
+                "gnss_bad", f"GNSS {gnss.port}: checksum errors {p.checksum_errors}, garbage lines {p.garbage}", now
+            )
+        latest = gnss.latest()
+        if latest is None or latest[0] == self._gnss_taken:
+            return
+        t, speed, course, fix = latest
+        self._gnss_taken = t
+        signals = {"FixType": float(fix)}
+        if speed == speed:  # no speed in the sentence: the neutral value, with its fix 0
+            signals["SpeedOverGround"] = speed
+        if course == course:  # receivers leave the course empty at standstill
+            signals["CourseOverGround"] = course
+        runner.on_values("GPS_Velocity", t, signals)
+
     def _warm_up(self) -> None:
         """Run the jitted step once before the loop (loading/compiling it takes far longer than a cycle)."""
         est = self.runner.estimator
@@ -236,7 +279,7 @@ class Daemon:
     # ------------------------------------------------------------------ state
 
     def _restore_state(self) -> None:
-        path = self.settings.runtime.get("state_file")
+        path = self.settings.runtime.state_file
         if not path:
             return
         design = self.runner.estimator.design
@@ -265,7 +308,7 @@ class Daemon:
         return [float(v) for v in self.runner.estimator.learned_stiffness()]
 
     def _save_state(self, values, now: float) -> None:
-        path = self.settings.runtime.get("state_file")
+        path = self.settings.runtime.state_file
         if not path or values is None:
             return
         try:
@@ -293,35 +336,37 @@ class Daemon:
         except UserFacingError as exc:
             log.error("SIGHUP: config not reloaded, keeping the running one: %s", exc)
             return
-        if settings.runtime["bus"] != self.settings.runtime["bus"]:
+        if settings.runtime.bus != self.settings.runtime.bus:
             log.warning("SIGHUP: runtime.bus changed; the bus is reopened with the new settings")
             self.settings = settings
             self._close_bus()
         if runner is not None:
             if settings.config_hash == self.settings.config_hash:
                 runner.estimator.restore_stiffness(self.runner.estimator.learned_stiffness())
+            # the wire goes on: output counters and the 10 Hz phase continue
+            runner.encoder, runner.cycles = self.runner.encoder, self.runner.cycles
             self.runner = runner
             self.estimates = runner.estimates
         self.settings = settings
-        self.rate_log.repeat_interval_s = float(settings.runtime["log_repeat_interval_s"])
-        logging.getLogger().setLevel(settings.runtime["log_level"])
+        self.rate_log.repeat_interval_s = float(settings.runtime.log_repeat_interval_s)
+        logging.getLogger().setLevel(settings.runtime.log_level)
         log.info("SIGHUP: config %s reloaded%s", self.config_path, "" if same_model else " (estimator restarted)")
 
     # ------------------------------------------------------------------ loop
 
     def run(self, duration: float | None = None) -> int:
         """Run until ``stop()`` (or ``duration`` seconds). Returns 0."""
-        rt = self.settings.runtime["realtime"]
+        if self.gnss is not None:
+            self.gnss.start()  # before the real-time priority: the reader thread must not inherit it
+        rt = self.settings.runtime.realtime
         scheduling_before = thread_scheduling()
-        self.realtime_warnings = apply_realtime(
-            rt["priority"], list(rt["cpus"]) if rt["cpus"] else None, rt["lock_memory"]
-        )
+        self.realtime_warnings = apply_realtime(rt.priority, list(rt.cpus) if rt.cpus else None, rt.lock_memory)
         for w in self.realtime_warnings:
             log.warning("real-time setting not applied: %s", w)
         if self.bus is None:
             self._try_open()
         runner = self.runner
-        encoder = self.encoder
+        gnss = self.gnss
         rx = self._rx
         dt = self.dt
         clock = time.monotonic
@@ -331,13 +376,11 @@ class Daemon:
         k = 1  # index of the next deadline on the grid t_start + k * dt
         next_reopen = t_start + REOPEN_INTERVAL_S
         next_status = t_start
-        next_health = t_start + self.settings.runtime["health_log_interval_s"]
-        next_save = t_start + self.settings.runtime["state_save_interval_s"]
+        next_health = t_start + self.settings.runtime.health_log_interval_s
+        next_save = t_start + self.settings.runtime.state_save_interval_s
         overrun_until = -math.inf
         send_fail_until = -math.inf
         period_worst_us = 0.0
-        status = {"overrun_count": 0, "cycle_time_us": 0}
-        cycle_index = 0
         try:
             while not self._stop.is_set():
                 deadline = t_start + k * dt
@@ -367,18 +410,16 @@ class Daemon:
                     ts, fid, data, ext = rx.popleft()
                     runner.on_frame(ts, fid, data, ext)
                 self.frames_in += n_rx
-                extra = 0
-                if now < overrun_until:
-                    extra |= REASON_OVERRUN
-                if now < send_fail_until:
-                    extra |= REASON_SEND_FAILURE
-                estimates = runner.cycle(now, extra)
-                self.estimates = estimates
-                status["overrun_count"] = self.overruns
-                status["cycle_time_us"] = period_worst_us
-                is_status = cycle_index % self.status_period == 0
-                frames = encoder.frames(estimates, cycle_index, status, runner.tracker.stale_bits())
-                cycle_index += 1
+                if gnss is not None:
+                    self._poll_gnss(runner, gnss, now)
+                runner.process_reasons = (REASON_OVERRUN if now < overrun_until else 0) | (
+                    REASON_SEND_FAILURE if now < send_fail_until else 0
+                )
+                runner.status["overrun_count"] = self.overruns
+                runner.status["cycle_time_us"] = period_worst_us
+                is_status = runner.cycles % self.status_period == 0
+                frames = runner.run(now)
+                estimates = self.estimates = runner.estimates
                 if is_status:
                     period_worst_us = 0.0
                 sent = self._send(frames, now)
@@ -411,10 +452,10 @@ class Daemon:
                     next_status = now + STATUS_NOTIFY_INTERVAL_S
                     self.notifier.status(self._status_text())
                 if now >= next_health:
-                    next_health = now + self.settings.runtime["health_log_interval_s"]
+                    next_health = now + self.settings.runtime.health_log_interval_s
                     self._health_log(now)
                 if now >= next_save:
-                    next_save = now + self.settings.runtime["state_save_interval_s"]
+                    next_save = now + self.settings.runtime.state_save_interval_s
                     self._save_in_background(now)
         finally:
             self._shutdown()
@@ -423,10 +464,11 @@ class Daemon:
 
     def _shutdown(self) -> None:
         self.notifier.stopping("stopping")
+        if self.gnss is not None:
+            self.gnss.stop()
         if self.bus is not None:
-            status = {"overrun_count": self.overruns, "cycle_time_us": 0}
-            frame = self.encoder.status_frame(self.estimates, self.runner.tracker.stale_bits(), status, valid=False)
-            self._send([frame], time.monotonic())
+            self.runner.status.update(overrun_count=self.overruns, cycle_time_us=0)
+            self._send([self.runner.final_status()], time.monotonic())
         if self._saver is not None:
             self._saver.join(timeout=5.0)
         self._save_state(self._stiffness_to_save(), time.monotonic())
@@ -437,16 +479,17 @@ class Daemon:
     # ------------------------------------------------------------------ reporting
 
     def _bus_name(self) -> str:
-        b = self.settings.runtime["bus"]
-        return f"{b['interface']}:{b['channel']}"
+        b = self.settings.runtime.bus
+        return f"{b.interface}:{b.channel}"
 
     def _status_text(self) -> str:
         e = self.estimates
         reasons = ",".join(reason_names(int(e[E_REASONS]))) or "-"
         bus = "open" if self.bus is not None else "LOST"
+        gnss = "" if self.gnss is None else f" gnss={'open' if self.gnss.connected else 'LOST'}"
         return (
             f"mode={MODE_NAMES[int(e[E_MODE])]} reasons={reasons} cycles={self.cycles} overruns={self.overruns} "
-            f"send_failures={self.send_failures} bus={bus}"
+            f"send_failures={self.send_failures} bus={bus}{gnss}"
         )
 
     def health(self) -> dict[str, Any]:
@@ -460,6 +503,7 @@ class Daemon:
             "bus_reopens": self.bus_reopens,
             "worst_cycle_us": round(self.worst_cycle_us, 1),
             "inputs": self.runner.tracker.summary(),
+            "gnss": None if self.gnss is None else self.gnss.stats(),
         }
 
     def _health_log(self, now: float) -> None:
@@ -474,6 +518,10 @@ class Daemon:
                     "jumps": h["counter_jumps"],
                     "timeouts": h["timeouts"],
                 }
+        if self.gnss is not None:
+            g = self.gnss.stats()
+            keys = ("connected", "opens", "disconnects", "used", "checksum_errors", "garbage")
+            inputs["gnss_serial"] = {k: g[k] for k in keys}
         summary = HealthSummary(
             mode=int(self.estimates[E_MODE]),
             reasons=int(self.estimates[E_REASONS]),
@@ -500,15 +548,17 @@ def load_daemon_settings(config: str | Path, overrides: dict[str, Any] | None = 
     settings = load_settings(config)
     if not overrides:
         return settings
-    runtime = dict(settings.runtime)
-    runtime["bus"] = dict(runtime["bus"])
-    for key, value in overrides.items():
-        if value is None:
-            continue
-        if key in ("interface", "channel"):
-            runtime["bus"][key] = str(value)
-        else:
-            runtime[key] = str(value) if isinstance(value, Path) else value
+    runtime = settings.runtime
+    bus = {k: str(v) for k, v in overrides.items() if k in ("interface", "channel") and v is not None}
+    rest = {
+        k: str(v) if isinstance(v, Path) else v
+        for k, v in overrides.items()
+        if k not in ("interface", "channel") and v is not None
+    }
+    if bus:
+        runtime = dataclasses.replace(runtime, bus=dataclasses.replace(runtime.bus, **bus))
+    if rest:
+        runtime = dataclasses.replace(runtime, **rest)
     return dataclasses.replace(settings, runtime=runtime)
 
 
@@ -527,16 +577,19 @@ def run_daemon(args) -> int:
     design = args.design_file or DEFAULT_DESIGN
     if args.check_config:
         runner = _build(Path(args.config), design, DEFAULT_DBC, settings)
-        bus = settings.runtime["bus"]
+        bus, gps = settings.runtime.bus, settings.runtime.gps
+        if gps.source == "serial":
+            NmeaParser()  # UserFacingError naming the gnss extra when pynmea2 is missing
+        where = f"serial {gps.serial_port} at {gps.serial_baudrate} baud" if gps.source == "serial" else "CAN"
         print(
             f"config OK: {args.config} (hash {settings.config_hash[:12]}), design {design}, "
             f"DBC {runner.codec.dbc_path} ({len(runner.codec.output_messages)} outputs), "
-            f"bus {bus['interface']}:{bus['channel']}, sample time {runner.sample_time * 1e3:g} ms"
+            f"bus {bus.interface}:{bus.channel}, gps {where}, sample time {runner.sample_time * 1e3:g} ms"
         )
         return 0
     if args.duration is not None and not args.duration > 0:
         raise UserFacingError(f"--duration must be positive, got {args.duration}")
-    setup_logging(settings.runtime["log_level"])
+    setup_logging(settings.runtime.log_level)
     daemon = Daemon(settings, args.config, design, overrides=overrides)
     previous: dict[int, Any] = {}
 

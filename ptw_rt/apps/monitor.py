@@ -28,6 +28,7 @@ from typing import Any, TextIO
 from ptw_rt.core.layout import MODE_NAMES, MODE_VALID, reason_names
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.dbc import DbcError, FrameCodec, FrameDecodeError
+from ptw_rt.io.e2e import CounterChecker, P11Status
 
 __all__ = ["FROZEN_AFTER_S", "SILENT_AFTER_PERIODS", "MessageStats", "Monitor", "run_monitor"]
 
@@ -56,13 +57,16 @@ class MessageStats:
     frozen_events: int = 0
     silent: bool = False
     frozen: bool = False
-    last_counter: int | None = None
     last_rx: float | None = None
-    invalid_since_good: int = 0
     values: dict[str, float] = field(default_factory=dict)
     content: tuple | None = None  # payload values without counter and CRC
     content_since: float | None = None
     arrivals: deque = field(default_factory=deque)
+    checker: CounterChecker | None = None  # the counter sequence (frames that failed their checks count as lost)
+
+    def __post_init__(self) -> None:
+        if self.counter_signal is not None and self.checker is None:
+            self.checker = CounterChecker(self.modulus)
 
     @property
     def errors(self) -> int:
@@ -144,23 +148,21 @@ class Monitor:
                 st.crc_errors += 1
             else:
                 st.decode_errors += 1
-            st.invalid_since_good += 1
+            if st.checker is not None:
+                st.checker.frame_lost()
             return None
         st.frames += 1
-        if st.counter_signal is not None:
+        if st.checker is not None:
             counter = int(values[st.counter_signal])
             if counter >= st.modulus:
                 st.decode_errors += 1  # counter 15 on a 0..14 counter
-                st.invalid_since_good += 1
+                st.checker.frame_lost()
                 return None
-            if st.last_counter is not None:
-                delta = (counter - st.last_counter) % st.modulus
-                if delta == 0:
-                    st.counter_repeats += 1
-                elif delta > 1 + st.invalid_since_good:
-                    st.counter_jumps += 1
-            st.last_counter = counter
-        st.invalid_since_good = 0
+            status = st.checker.step(counter)
+            if status == P11Status.REPEATED:
+                st.counter_repeats += 1
+            elif status == P11Status.WRONGSEQUENCE:
+                st.counter_jumps += 1
         st.values = values
         skip = self._skip[st.name]
         content = tuple(v for k, v in values.items() if k not in skip)

@@ -39,7 +39,7 @@ def _percentiles(samples_ns: np.ndarray) -> dict:
 
 
 def _riding_frames(seconds: float = 20.0):
-    from ptw_rt.runtime.cycle import build_runner
+    from ptw_rt.edge.cycle import build_runner
     from ptw_rt.sim.recording import encode_frames
     from ptw_rt.sim.ride import simulate
 
@@ -51,7 +51,7 @@ def _riding_frames(seconds: float = 20.0):
 def measure_step(n: int) -> dict:
     """Per-call time of Estimator.step on a realistic stream of Samples (run in this process)."""
     from ptw_rt.core.layout import new_estimates
-    from ptw_rt.runtime.cycle import build_runner, drive_log
+    from ptw_rt.edge.cycle import build_runner, drive_log
 
     ride, frames = _riding_frames(12.0)
     runner = build_runner(DEFAULT_CONFIG)
@@ -77,74 +77,50 @@ def _step_in_subprocess(n: int, disable_jit: bool) -> dict:
     env = dict(os.environ)
     if disable_jit:
         env["NUMBA_DISABLE_JIT"] = "1"
-    code = f"import json; from ptw_rt.bench import measure_step; print(json.dumps(measure_step({n})))"
+    code = f"import json; from ptw_rt.apps.bench import measure_step; print(json.dumps(measure_step({n})))"
     p = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=True)
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def measure_cycle(n_cycles: int = 2000) -> dict | None:
-    """decode + step + encode of one cycle's frames (the daemon's CPU work per cycle, I/O excluded)."""
-    try:
-        from ptw_rt.runtime.outputs import OutputEncoder
-    except ImportError:
-        return None
-    from ptw_rt.runtime.cycle import build_runner
+def measure_cycle(n_cycles: int = 2000) -> dict:
+    """decode + step + encode of one cycle's frames (the daemon's CPU work per cycle, I/O excluded): ``run``."""
+    from ptw_rt.edge.cycle import build_runner
 
     ride, frames = _riding_frames(12.0)
     runner = build_runner(DEFAULT_CONFIG)
-    encoder = OutputEncoder(runner.codec)
     dt = runner.sample_time
     t_next = frames[0][0] + dt
     i = 0
     times = []
-    k = 0
     clock = time.perf_counter_ns
-    while i < len(frames) and k < n_cycles:
+    while i < len(frames) and len(times) < n_cycles:
         t0 = clock()
         while i < len(frames) and frames[i][0] <= t_next:
             runner.on_frame(frames[i][0], frames[i][1], frames[i][2])
             i += 1
-        est = runner.cycle(t_next)
-        encoder.frames(est, k, _status())
+        runner.run(t_next)
         times.append(clock() - t0)
         t_next += dt
-        k += 1
     return _percentiles(np.asarray(times[100:], dtype=np.int64))
 
 
-def _status() -> dict:
-    return {"overrun_count": 0, "cycle_time_us": 0, "stale_bits": 0}
-
-
 def _replay_one(seconds: float) -> tuple[float, float]:
-    """(ride seconds, wall seconds) of replaying one simulated log through cycle + encoder."""
-    from ptw_rt.runtime.cycle import build_runner, drive_log
+    """(ride seconds, wall seconds) of replaying one simulated log through the whole cycle (decode, step, encode)."""
+    from ptw_rt.edge.cycle import build_runner, drive_log
 
-    try:
-        from ptw_rt.runtime.outputs import OutputEncoder
-    except ImportError:
-        OutputEncoder = None  # noqa: N806
     ride, frames = _riding_frames(seconds)
     runner = build_runner(DEFAULT_CONFIG)
-    encoder = OutputEncoder(runner.codec) if OutputEncoder else None
-    counter = [0]
-
-    def on_cycle(now, est):
-        if encoder is not None:
-            encoder.frames(est, counter[0], _status())
-        counter[0] += 1
-
-    drive_log(frames[:200], runner, on_cycle, start=ride.epoch)  # warm
+    drive_log(frames[:200], runner, on_frames=lambda now, out: None, start=ride.epoch)  # warm
     runner = build_runner(DEFAULT_CONFIG)
     t0 = time.perf_counter()
-    drive_log(frames, runner, on_cycle, start=ride.epoch)
+    drive_log(frames, runner, on_frames=lambda now, out: None, start=ride.epoch)
     return ride.duration, time.perf_counter() - t0
 
 
 def measure_start(cache_dir: str) -> dict:
     code = (
         "import time, resource, json; t0 = time.perf_counter();"
-        "from ptw_rt.runtime.cycle import build_runner;"
+        "from ptw_rt.edge.cycle import build_runner;"
         f"r = build_runner({str(DEFAULT_CONFIG)!r}); r.cycle(0.01);"
         "print(json.dumps({'start_s': time.perf_counter() - t0,"
         " 'rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))"
@@ -172,13 +148,14 @@ def measure_loop(seconds: float, hogs: int = 0) -> dict:
 
     import can
 
-    from ptw_rt.runtime.daemon import Daemon, load_daemon_settings
-    from ptw_rt.runtime.realtime import apply_realtime
+    from ptw_rt.service.daemon import Daemon, load_daemon_settings
+    from ptw_rt.service.realtime import apply_realtime
+    from ptw_rt.settings import RealtimeSettings
 
     channel = f"ptw-rt-bench-{os.getpid()}-{hogs}"
     with tempfile.TemporaryDirectory() as tmp:
         # as ptw-rt.service runs it: SCHED_FIFO 40 (applied if this process may, else a warning in the result)
-        realtime = {"priority": 40, "cpus": None, "lock_memory": False}
+        realtime = RealtimeSettings(priority=40, cpus=None, lock_memory=False)
         overrides = {"interface": "virtual", "channel": channel, "state_file": str(Path(tmp) / "state.json")}
         settings = load_daemon_settings(DEFAULT_CONFIG, {**overrides, "realtime": realtime})
         daemon = Daemon(settings, DEFAULT_CONFIG)

@@ -8,13 +8,17 @@ raised as a reason bit of the cycle in which it was seen:
 - a rolling counter that skipped or repeated                   -> counter_jumps
 - no valid frame within `stale_after_periods` cycle times      -> SensorTimeouts bit + sensor_stale
 Unknown identifiers are counted and otherwise ignored (they are someone else's traffic).
-Nothing here raises on bad data.
+Nothing here raises on bad data. Frames are unpacked by the codec's compiled message (``MessageLayout``), counters
+checked by ``ptw_rt.io.e2e.CounterChecker``: nothing here knows a bit layout.
+``on_values`` takes an input's signals from another source than a CAN frame (a serial GNSS receiver for
+``GPS_Velocity``) into the same Sample slots, range checks and timeout.
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +46,7 @@ from ptw_rt.core.layout import (
     SAMPLE_SIZE,
 )
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
+from ptw_rt.io.e2e import CounterChecker, P11Status
 
 _BYTES_TYPES = (bytes, bytearray)
 MAX_IMU_AGE = 0.05  # s
@@ -68,7 +73,6 @@ class MessageHealth:
     timeouts: int = 0  # transitions fresh -> stale
     stale: bool = True
     last_valid_time: float = -math.inf
-    last_counter: int | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -79,6 +83,9 @@ class MessageHealth:
             "timeouts": self.timeouts,
             "stale": self.stale,
         }
+
+
+_SEQUENCE_OK = (P11Status.OK, P11Status.INITIAL)
 
 
 @dataclass
@@ -94,16 +101,15 @@ class InputTracker:
         self._row: list[float] = [0.0] * SAMPLE_SIZE
         self._row_struct = struct.Struct(f"={SAMPLE_SIZE}d")
         self._timeout: dict[str, float] = {}
-        self._modulus: dict[str, int] = {}
-        self._counter_signal: dict[str, str | None] = {}
+        self._plans: dict[str, tuple] = {}
+        self._by_id: dict[tuple[int, bool], tuple] = {}
         for name in SIGNAL_SLOTS:
             self.health[name] = MessageHealth()
             self._timeout[name] = self.stale_after_periods * self.codec.cycle_time_s(name)
-            self._modulus[name] = self.codec.counter_modulus(name)
-            self._counter_signal[name] = self.codec.counter_signal(name)
-        self._ids = {self.codec.frame_id(n): n for n in SIGNAL_SLOTS}
-        # frame id -> everything on_frame needs for that message, resolved once here instead of per frame
-        self._plans = {fid: self._plan(name) for fid, name in self._ids.items()}
+            plan = self._plan(name)
+            self._plans[name] = plan
+            layout = plan[0]
+            self._by_id[(layout.frame_id, bool(layout.message.is_extended_frame))] = plan
         # (health, timeout, MSG_* bit) in health order, for fill()
         self._imu_health = self.health["IMU_Rates"]
         self._stale_plan = tuple((self.health[n], self._timeout[n], INPUT_MESSAGE_BITS[n]) for n in SIGNAL_SLOTS)
@@ -112,110 +118,79 @@ class InputTracker:
         self._reasons = 0
 
     def _plan(self, name: str) -> tuple:
-        """``(name, health, DLC, counter shift or -1, counter mask, modulus, fields, MSG_* bit)`` of one input message.
+        """``(layout, health, counter checker, counter position or -1, range checks, slots, MSG_* bit)`` of one input.
 
-        ``fields`` (None: the message is not plain Intel integers, decode through the codec) lists only the
-        signals that matter here: the ones copied into the Sample and the ones that can be out of range.
-        A signal whose whole raw field maps into its DBC [min, max] cannot be (``raw * scale + offset`` is
-        monotonic in raw, so the two ends of the raw range bound it, and an integer gives a finite value):
-        the per-frame range check skips it, with the same outcome as ``FrameCodec.out_of_range``.
+        ``range checks`` (position, lo, hi) only for the signals whose raw field can decode outside the DBC
+        [min, max] (``SignalLayout.can_exceed``): for the others the check could never fail. ``slots``
+        (position, Sample index) of the signals copied into the Sample.
         """
-        codec = self.codec
-        health = self.health[name]
-        bit = INPUT_MESSAGE_BITS[name]
-        modulus = self._modulus[name]
-        layout = codec.plain_layout(name)
-        if layout is None:
-            return (name, health, codec.expected_length(name), -1, 0, modulus, None, bit)
-        slot_of = dict(SIGNAL_SLOTS[name])
-        counter = self._counter_signal[name]
-        shift, cmask = -1, 0
-        fields = []
-        for signal, start, n, signed, scale, offset, lo, hi in layout:
-            if signal == counter:
-                if scale != 1.0 or offset != 0.0:  # the codec rejects such a counter; keep the generic path then
-                    return (name, health, codec.expected_length(name), -1, 0, modulus, None, bit)
-                shift, cmask = start, (1 << n) - 1
-            sign_bit = 1 << (n - 1) if signed else 0
-            raw_lo, raw_hi = (-(1 << (n - 1)), (1 << (n - 1)) - 1) if signed else (0, (1 << n) - 1)
-            ends = (raw_lo * scale + offset, raw_hi * scale + offset)
-            check = not (all(math.isfinite(v) for v in ends) and lo <= min(ends) and max(ends) <= hi)
-            slot = slot_of.get(signal, -1)
-            if check or slot >= 0:
-                fields.append((start, (1 << n) - 1, sign_bit, 1 << n, scale, offset, lo, hi, check, slot))
-        if counter is not None and shift < 0:
-            return (name, health, codec.expected_length(name), -1, 0, modulus, None, bit)
-        return (name, health, codec.expected_length(name), shift, cmask, modulus, tuple(fields), bit)
+        layout = self.codec.layout(name)
+        counter = layout.counter_signal
+        checker = CounterChecker(layout.counter_modulus) if counter is not None else None
+        checks = tuple((k, s.lo, s.hi) for k, s in enumerate(layout.signals) if s.can_exceed)
+        slots = tuple((layout.index[signal], slot) for signal, slot in SIGNAL_SLOTS[name])
+        pos = -1 if counter is None else layout.index[counter]
+        return (layout, self.health[name], checker, pos, checks, slots, INPUT_MESSAGE_BITS[name])
 
     def on_frame(self, timestamp: float, frame_id: int, data: bytes, *, extended: bool = False) -> None:
-        plan = None if extended else self._plans.get(frame_id)
+        plan = self._by_id.get((frame_id, extended))
         if plan is None:
             self.unknown_ids += 1
             return
-        name, h, length, shift, cmask, modulus, fields, bit = plan
-        # exotic argument types (a float id, a list of ints, a memoryview) take the codec's own checks
-        if fields is None or type(data) not in _BYTES_TYPES or type(frame_id) is not int:
-            self._on_frame_generic(name, timestamp, frame_id, data)
-            return
-        # the codec's decode, unrolled for this message: DLC check, then integer unpacking of only the
-        # signals needed (plain Intel integers cannot be garbage once the length is right)
-        if len(data) != length:
-            h.decode_errors += 1
+        layout = plan[0]
+        if type(data) in _BYTES_TYPES and type(frame_id) is int:
+            if len(data) != layout.length:
+                values = None
+            else:
+                try:
+                    values = layout.unpack(data)
+                except Exception:  # the generic (cantools) path on undecodable data
+                    values = None
+        else:  # exotic argument types (a float id, a list of ints, a memoryview) take the codec's own checks
+            try:
+                values = list(self.codec.decode(frame_id, data, extended=extended)[1].values())
+            except FrameDecodeError:
+                values = None
+        if values is None:
+            plan[1].decode_errors += 1
             self._reasons |= REASON_DECODE_ERRORS
             return
+        self._accept(plan, timestamp, values, True)
+
+    def on_values(self, message: str, timestamp: float, signals: Mapping[str, float]) -> None:
+        """Signals of input ``message`` from a source other than a CAN frame (no counter). A signal not given is
+        taken as its neutral value; the given ones are range checked and copied as a frame's would be."""
+        plan = self._plans[message]
+        layout = plan[0]
+        values = [signals.get(s.name, s.neutral) for s in layout.signals]
+        self._accept(plan, timestamp, values, False)
+
+    def _accept(self, plan: tuple, timestamp: float, values: list[float], counted: bool) -> None:
+        _, h, checker, counter_pos, checks, slots, bit = plan
         h.frames += 1
-        word = int.from_bytes(data, "little")
-        if shift >= 0:
-            c = (word >> shift) & cmask
-            last = h.last_counter
-            if last is not None and (c - last) % modulus != 1:
-                h.counter_jumps += 1
-                self._reasons |= REASON_COUNTER_JUMPS
-            h.last_counter = c
-        values = []
-        for start, mask, sign_bit, full, scale, offset, lo, hi, check, slot in fields:
-            raw = (word >> start) & mask
-            if raw & sign_bit:
-                raw -= full
-            v = raw * scale + offset
-            if check and not lo <= v <= hi:
+        if counted and counter_pos >= 0 and checker.step(int(values[counter_pos])) not in _SEQUENCE_OK:
+            h.counter_jumps += 1
+            self._reasons |= REASON_COUNTER_JUMPS
+        for k, lo, hi in checks:
+            if not lo <= values[k] <= hi:  # also NaN
                 h.out_of_range += 1
                 self._reasons |= REASON_OUT_OF_RANGE
                 return
-            if slot >= 0:
-                values.append((slot, v))
         row = self._row
-        for slot, v in values:
-            row[slot] = v
+        for k, slot in slots:
+            row[slot] = values[k]
         h.last_valid_time = timestamp
         self._fresh |= bit
 
-    def _on_frame_generic(self, name: str, timestamp: float, frame_id: int, data: bytes) -> None:
-        """Any frame through ``FrameCodec.decode`` (data not bytes, or a message layout not unpacked here)."""
-        h = self.health[name]
-        try:
-            _, values = self.codec.decode(frame_id, data)
-        except FrameDecodeError:
-            h.decode_errors += 1
-            self._reasons |= REASON_DECODE_ERRORS
-            return
-        h.frames += 1
-        cname = self._counter_signal[name]
-        if cname is not None:
-            c = int(values[cname])
-            if h.last_counter is not None and (c - h.last_counter) % self._modulus[name] != 1:
-                h.counter_jumps += 1
-                self._reasons |= REASON_COUNTER_JUMPS
-            h.last_counter = c
-        bad = self.codec.out_of_range(name, values)
-        if bad or not all(math.isfinite(v) for v in values.values()):
-            h.out_of_range += 1
-            self._reasons |= REASON_OUT_OF_RANGE
-            return
-        for signal, index in SIGNAL_SLOTS[name]:
-            self._row[index] = values[signal]
-        h.last_valid_time = timestamp
-        self._fresh |= INPUT_MESSAGE_BITS[name]
+    def decode_error(self, message: str) -> None:
+        """Something of ``message`` arrived that could not be decoded (a serial line with a bad checksum)."""
+        self.health[message].decode_errors += 1
+        self._reasons |= REASON_DECODE_ERRORS
+
+    def lost(self, message: str) -> None:
+        """The source of ``message`` is gone (a serial receiver unplugged): stale from the next ``fill`` on,
+        without waiting for its timeout."""
+        self.health[message].last_valid_time = -math.inf
 
     def fill(self, sample: np.ndarray, now: float) -> None:
         """Write the cycle's Sample at time `now` and start collecting the next cycle."""

@@ -2,7 +2,7 @@
 
 Three parties share one virtual channel (``ptw-rt-demo-<pid>``), all in this process:
 
-* the **daemon** (``ptw_rt.runtime.daemon.Daemon``, its real 100 Hz loop, in a thread), publishing EST_* frames;
+* the **daemon** (``ptw_rt.service.daemon.Daemon``, its real 100 Hz loop, in a thread), publishing EST_* frames;
 * a **player** thread sending the ride's sensor frames on an absolute ``time.monotonic`` schedule
   (ride time / ``--speed``, no drift);
 * a **listener** thread decoding everything on the wire (``FrameCodec.decode_checked``: CRC and counter range of
@@ -39,7 +39,7 @@ from ptw_rt.core.layout import MODE_NAMES, MODE_VALID
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import CandumpWriter
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
-from ptw_rt.io.e2e import counter_delta
+from ptw_rt.io.e2e import CounterChecker, P11Status
 from ptw_rt.paths import DEFAULT_CONFIG
 
 __all__ = ["run_demo"]
@@ -51,6 +51,7 @@ READY_TIMEOUT_S = 10.0
 LIVE_PERIOD_TTY = 0.2
 LIVE_PERIOD_PIPE = 1.0
 LOG_CHANNEL = "vcan0"
+_SEQUENCE_OK = (P11Status.OK, P11Status.INITIAL)
 
 # (output message, signal, truth column, scale to the printed unit, printed name, unit)
 _SCORED = (
@@ -114,7 +115,7 @@ class _Listener(threading.Thread):
         self.errors: collections.Counter = collections.Counter()  # decode error reason -> count (outputs)
         self.counter_errors: collections.Counter = collections.Counter()  # message -> counter steps != 1
         self.inputs = 0
-        self._last_counter: dict[str, int] = {}
+        self._checkers = {n: CounterChecker(codec.counter_modulus(n)) for n in codec.output_messages}
 
     def run(self) -> None:
         clock = time.monotonic
@@ -151,12 +152,8 @@ class _Listener(threading.Thread):
             self.errors[exc.reason] += 1
             return
         counter = codec.counter_signal(name)
-        if counter is not None:
-            c = int(values[counter])
-            last = self._last_counter.get(name)
-            if last is not None and counter_delta(last, c, codec.counter_modulus(name)) != 1:
-                self.counter_errors[name] += 1
-            self._last_counter[name] = c
+        if counter is not None and self._checkers[name].step(int(values[counter])) not in _SEQUENCE_OK:
+            self.counter_errors[name] += 1
         self.decoded[name].append((now, values))
         with self.lock:
             self.latest[name] = values
@@ -217,7 +214,7 @@ def _duration(args, scenario) -> float:
 
 def run_demo(args) -> int:
     """Simulate, play on a virtual bus into the daemon, show the wire live, score it, write logs and report."""
-    from ptw_rt.runtime.daemon import Daemon, load_daemon_settings
+    from ptw_rt.service.daemon import Daemon, load_daemon_settings
     from ptw_rt.sim.recording import encode_frames, read_truth_csv, write_ride
     from ptw_rt.sim.ride import get_scenario, simulate
 
@@ -398,7 +395,7 @@ def _summary(daemon, listener: _Listener, player: _Player, ride, truth, speed: f
     # the wire
     print("frames received / expected (from the daemon's cycle count):")
     for name in daemon.codec.output_messages:
-        period = daemon.encoder.periods.get(name, 1)
+        period = daemon.runner.encoder.periods.get(name, 1)
         expected = math.ceil(daemon.cycles / period) + (1 if name == "EST_Status" else 0)  # + the last frame
         print(f"  {name:<18} {listener.received[name]:6d} / {expected:6d}")
     crc = listener.errors.get(FrameDecodeError.CRC, 0)

@@ -1,6 +1,6 @@
 """``ptw-rt replay``: candump logs through the daemon's cycle, clocked by the log's time stamps.
 
-    log frames -> drive_log(CycleRunner) -> OutputEncoder -> candump -L output log (+ optional CSV of the estimates)
+    log frames -> drive_log(CycleRunner: decode, track, step, encode) -> candump -L output log (+ optional CSV)
 
 The output log holds the estimator's frames (EST_*) stamped with LOG time (the cycle's time), on the channel of
 the input log. Nothing depends on the wall clock or the machine, so the same input gives a byte-identical
@@ -24,18 +24,16 @@ from typing import IO, Any
 import numpy as np
 
 from ptw_rt.core.layout import E_MODE, ESTIMATE_NAMES, MODE_NAMES
+from ptw_rt.edge.cycle import CycleRunner, build_runner, drive_log
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import CandumpReader, CandumpWriter, read_log
 from ptw_rt.paths import DEFAULT_CONFIG
-from ptw_rt.runtime.cycle import CycleRunner, build_runner, drive_log
-from ptw_rt.runtime.outputs import OutputEncoder
 
 __all__ = ["replay_log", "run_replay"]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_CHANNEL = "vcan0"
-_REPLAY_STATUS = {"overrun_count": 0, "cycle_time_us": 0}  # no deadlines in a replay: deterministic output
 
 
 def _frames(first, reader: CandumpReader, skipped: list[int]) -> Iterator[tuple[float, int, bytes]]:
@@ -76,7 +74,6 @@ def replay_log(
     in_path, out_log = Path(in_path), Path(out_log)
     wall0 = time.perf_counter()
     runner = runner or build_runner(config, design_file)
-    encoder = OutputEncoder(runner.codec, runner.sample_time)
     try:
         reader = read_log(in_path)
         first = next(reader, None)
@@ -97,14 +94,15 @@ def replay_log(
                 csv = open(csv_path, "w", encoding="ascii", newline="\n")
                 csv.write("time," + ",".join(ESTIMATE_NAMES) + "\n")
             write = writer.write
-            tracker = runner.tracker
+
+            def on_frames(now: float, frames: list[tuple[int, bytes]]) -> None:
+                nonlocal frames_out
+                for fid, data in frames:
+                    write(now, fid, data)
+                frames_out += len(frames)
 
             def on_cycle(now: float, estimates: np.ndarray) -> None:
-                nonlocal frames_out, t_last
-                k = runner.cycles - 1
-                for fid, data in encoder.frames(estimates, k, _REPLAY_STATUS, tracker.stale_bits()):
-                    write(now, fid, data)
-                    frames_out += 1
+                nonlocal t_last
                 m = int(estimates[E_MODE])
                 if 0 <= m < len(mode_counts):
                     mode_counts[m] += 1
@@ -112,7 +110,11 @@ def replay_log(
                     csv.write(_csv_row(now, estimates))
                 t_last = now
 
-            cycles = 0 if first is None else drive_log(_frames(first, reader, skipped), runner, on_cycle)
+            cycles = (
+                0
+                if first is None
+                else drive_log(_frames(first, reader, skipped), runner, on_cycle, on_frames=on_frames)
+            )
     finally:
         if csv is not None:
             csv.close()
