@@ -10,6 +10,9 @@ from ptw_rt.core import kalman as kf
 from ptw_rt.design.build import check_design
 from ptw_rt.model.sharp import state_space
 
+# the linear model itself: no nonlinear correction (zero vehicle constants make it vanish)
+NO_CORRECTION = (np.zeros(7), np.zeros(kf.N_D))
+
 DT = 0.01
 
 
@@ -68,7 +71,9 @@ def test_reconstructs_states_and_rider_torque_on_the_linear_model(design, vehicl
     state, out = kf.new_state(), np.zeros(kf.N_Z)
     est = np.zeros((n, kf.N_Z))
     for k in range(n):
-        kf.kalman_step(state, out, Y[k], u, 0.0, design.grid, design.kf_Phi, design.kf_K, design.kf_C)
+        kf.kalman_step(
+            state, out, Y[k], u, 0.0, design.grid, design.kf_Phi, design.kf_K, design.kf_C, design.kf_Gd, *NO_CORRECTION
+        )
         est[k] = out
     late = t > 6.0
     # the filter is one cycle behind an input step at most; a smooth torque is tracked closely
@@ -80,7 +85,9 @@ def test_reconstructs_states_and_rider_torque_on_the_linear_model(design, vehicl
 def test_starts_from_the_given_roll_and_measured_outputs(design):
     state, out = kf.new_state(), np.zeros(kf.N_Z)
     y = np.array([0.01, 0.05, 0.02, 0.5, 0.1])
-    kf.kalman_step(state, out, y, 20.0, 0.1, design.grid, design.kf_Phi, design.kf_K, design.kf_C)
+    kf.kalman_step(
+        state, out, y, 20.0, 0.1, design.grid, design.kf_Phi, design.kf_K, design.kf_C, design.kf_Gd, *NO_CORRECTION
+    )
     assert state[kf.INIT] == 1.0
     assert out[kf.PHI] == pytest.approx(0.1, abs=0.02)
     assert out[kf.DELTA] == pytest.approx(0.01, abs=1e-3)
@@ -92,5 +99,17 @@ def test_speed_outside_the_grid_is_clamped_not_extrapolated(design):
     for u in (0.0, -1.0, 200.0):
         state, out, y = kf.new_state(), np.zeros(kf.N_Z), np.array([0.02, 0.1, 0.0, 1.0, 0.0])
         for _ in range(300):
-            kf.kalman_step(state, out, y, u, 0.0, design.grid, design.kf_Phi, design.kf_K, design.kf_C)
+            kf.kalman_step(
+                state,
+                out,
+                y,
+                u,
+                0.0,
+                design.grid,
+                design.kf_Phi,
+                design.kf_K,
+                design.kf_C,
+                design.kf_Gd,
+                *NO_CORRECTION,
+            )
         assert np.all(np.isfinite(out)), u

@@ -274,6 +274,8 @@ def estimator_step(
     kf_C: np.ndarray,
     att_state: np.ndarray,
     att_prm: np.ndarray,
+    kf_Gd: np.ndarray,
+    kf_nonlinear: np.ndarray,
 ) -> None:
     dt = prm[P_DT]
     glue[G_TIME] += dt
@@ -494,25 +496,27 @@ def estimator_step(
             for c in range(kf.N_Z):
                 acc += kf_C[3, c] * kf_state[c]
             y_kf[3] = acc
-        # the kinematic roll as a measurement (the model's roll variable is tan(phi), see below)
+        # the kinematic roll as a measurement
         if attitude_ok:
-            y_kf[4] = math.tan(roll_prev)
+            y_kf[4] = roll_prev
         else:  # no kinematic roll: no innovation from it
             acc = 0.0
             for c in range(kf.N_Z):
                 acc += kf_C[4, c] * kf_state[c]
             y_kf[4] = acc
-        kf.kalman_step(kf_state, kf_out, y_kf, u, math.tan(roll_prev), grid, kf_Phi, kf_K, kf_C)
+        kf.kalman_step(
+            kf_state, kf_out, y_kf, u, roll_prev, grid, kf_Phi, kf_K, kf_C, kf_Gd, kf_nonlinear, scratch[89:93]
+        )
         if (
             not _all_finite(kf_out, kf.N_Z)
-            or abs(kf_out[kf.PHI]) > math.tan(prm[P_MAX_ROLL])
+            or abs(kf_out[kf.PHI]) > prm[P_MAX_ROLL]
             or abs(kf_out[kf.TAU]) > prm[P_MAX_TORQUE]
         ):
             kf_state[kf.INIT] = 0.0
             _raise(glue, REASON_DIVERGING, prm[P_REASON_HOLD])
             for k in range(kf.N_Z):
                 kf_out[k] = 0.0
-            kf_out[kf.PHI] = math.tan(glue[G_ROLL])
+            kf_out[kf.PHI] = glue[G_ROLL]
             kf_out[kf.DELTA] = delta
             kf_out[kf.R] = r_ground
             kf_out[kf.PHI_DOT] = p_rate
@@ -522,9 +526,9 @@ def estimator_step(
             kf_out[k] = 0.0
 
     # roll: the attitude filter's, at every speed (kinematics do not depend on the tyres; the fusion filter
-    # fuses it, and its own roll, atan of the linear model's tan(phi) variable, is a diagnostic). Without
+    # fuses it; its own roll is a diagnostic). Without
     # the attitude filter (IMU missing at start), the gyro integrated and pulled to the kinematic roll.
-    roll_fusion = math.atan(kf_out[kf.PHI]) if run_observers else 0.0
+    roll_fusion = kf_out[kf.PHI] if run_observers else 0.0
     if run_observers:
         tau = kf_out[kf.TAU]
     if attitude_ok:
@@ -759,6 +763,8 @@ TABLE_PARTS = (
     ("kf_K", 3),
     ("kf_C", 2),
     ("att_prm", 1),
+    ("kf_Gd", 3),
+    ("kf_nonlinear", 1),
 )
 
 
@@ -812,6 +818,8 @@ def packed_step(
         _v2(t, ti, 25),
         _v1(s, si, 6),
         _v1(t, ti, 26),
+        _v3(t, ti, 27),
+        _v1(t, ti, 28),
     )
 
 

@@ -1,7 +1,13 @@
 """Fusion filter step (steady-state Kalman on the torque-augmented Sharp model; design in ptw_rt.design.kalman).
 
-    z+ = z + K(u) (y - C z)      corrector: y = [delta, r, phi_dot, a_y, phi_kinematic]
-    z  = Phi(u) z+               predictor: exact ZOH, rider torque held (random walk)
+    z+ = z + K(u) (y - C z)          corrector: y = [delta, r, phi_dot, a_y, phi_kinematic]
+    z  = Phi(u) z+ + Gd(u) d(z+)     predictor: exact ZOH, rider torque held (random walk)
+
+d are the generalised forces by which the vehicle's rows differ from the linear model's (sin and cos of
+roll and steer instead of their small-angle forms; see `nonlinear_correction`): a known input computed
+from the corrected state, so the filter stays exact in a 30 deg corner where the small-angle steer
+row alone would bias the rider torque by 10 N m. phi is the roll angle itself (not tan phi): with d the
+roll row is exact, and the tyres' camber is phi.
 
 State layout (float64, `new_state`): [0:9] z = [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau],
 [9] initialised. The rates come bias-corrected (the attitude filter owns the gyro biases).
@@ -9,6 +15,8 @@ The corrected z+ is written to `out` (the estimate of this cycle).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -20,6 +28,29 @@ N_Y = 5
 PHI, DELTA, VY, R, PHI_DOT, DELTA_DOT, FYF, FYR, TAU = range(9)
 INIT = 9
 STATE_SIZE = 10
+
+# vehicle constants of the nonlinear correction (ptw_rt.design.kalman.nonlinear_constants)
+NL_ROLL_MOMENT, NL_GYRO_TOTAL, NL_GYRO_FRONT, NL_STEER_STIFFNESS, NL_MFE, NL_G, NL_SIN_CASTER = range(7)
+N_D = 4  # lateral, yaw, roll, steer rows
+
+
+@njit(cache=True)
+def nonlinear_correction(d: np.ndarray, z: np.ndarray, u: float, nl: np.ndarray) -> None:
+    """d = (nonlinear rows) - (linear rows) at state z, per docs/simulator.md's plant equations:
+
+    lateral  S phi_dot^2 sin(phi)
+    yaw      G u phi_dot (cos(phi) - 1)
+    roll     S g (sin(phi) - phi) + K_s (sin(delta) cos(phi) - delta) - (S + G) u r (cos(phi) - 1)
+    steer    K_s (sin(phi) - phi) + K_s sin(eps) (sin(delta) - delta) - (M_f e + G_f sin(eps)) u r (cos(phi) - 1)
+    """
+    phi, delta, r, phi_dot = z[PHI], z[DELTA], z[R], z[PHI_DOT]
+    sp, cp, sd = math.sin(phi), math.cos(phi), math.sin(delta)
+    S, G, Gf, Ks = nl[NL_ROLL_MOMENT], nl[NL_GYRO_TOTAL], nl[NL_GYRO_FRONT], nl[NL_STEER_STIFFNESS]
+    se = nl[NL_SIN_CASTER]
+    d[0] = S * phi_dot * phi_dot * sp
+    d[1] = G * u * phi_dot * (cp - 1.0)
+    d[2] = S * nl[NL_G] * (sp - phi) + Ks * (sd * cp - delta) - (S + G) * u * r * (cp - 1.0)
+    d[3] = Ks * (sp - phi) + Ks * se * (sd - delta) - (nl[NL_MFE] + Gf * se) * u * r * (cp - 1.0)
 
 
 def new_state() -> np.ndarray:
@@ -37,6 +68,9 @@ def kalman_step(
     Phi: np.ndarray,
     K: np.ndarray,
     C: np.ndarray,
+    Gd: np.ndarray,
+    nl: np.ndarray,
+    d: np.ndarray,
 ) -> None:
     """One cycle; `out` (>= N_Z floats) receives the corrected state. `roll_init` seeds phi on (re)start."""
     i, w = grid_position(grid, u)
@@ -57,8 +91,11 @@ def kalman_step(
             e -= C[r, c] * z[c]
         for a in range(N_Z):
             out[a] += lerp(K, i, w, a, r) * e
+    nonlinear_correction(d, out, u, nl)
     for a in range(N_Z):
         acc = 0.0
         for b in range(N_Z):
             acc += lerp(Phi, i, w, a, b) * out[b]
+        for b in range(N_D):
+            acc += lerp(Gd, i, w, a, b) * d[b]
         z[a] = acc

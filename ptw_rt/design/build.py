@@ -60,7 +60,7 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         ad_B.append(Bd)
     ad_B = np.array(ad_B)
     nominal = np.array(p.nominal_stiffness())
-    kf_Phi, kf_K = kalman.design_grid(p, grid, dt, est.kalman)
+    kf_Phi, kf_K, kf_Gd = kalman.design_grid(p, grid, dt, est.kalman)
     data = DesignData(
         format_version=FORMAT_VERSION,
         config_hash=settings.config_hash,
@@ -108,6 +108,8 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         kf_Phi=kf_Phi,
         kf_K=kf_K,
         kf_C=kalman.output_matrix(p),
+        kf_Gd=kf_Gd,
+        kf_nonlinear=kalman.nonlinear_constants(p),
     )
     return data, {"lmi_solution": sol, "uihosmo": uh}
 

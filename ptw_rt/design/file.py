@@ -19,7 +19,7 @@ import numpy as np
 from ptw_rt.errors import UserFacingError
 from ptw_rt.untrusted import excerpt, open_binary, short_text
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -69,9 +69,11 @@ class DesignData:
     # regressor constants (seed 001 eq. 8): sigma_f, sigma_r, l_f, l_r, caster, trail
     regressor_constants: np.ndarray  # (6,)
     # fusion filter (steady-state Kalman, state [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau])
-    kf_Phi: np.ndarray  # (G, 11, 11) exact ZOH of the torque- and gyro-bias-augmented model
+    kf_Phi: np.ndarray  # (G, 9, 9) exact ZOH of the torque-augmented model
     kf_K: np.ndarray  # (G, 9, 5) corrector gain for y = [delta, r, phi_dot, a_y, phi]
     kf_C: np.ndarray  # (5, 9)
+    kf_Gd: np.ndarray  # (G, 9, 4) exact ZOH of the nonlinear correction forces (lateral, yaw, roll, steer rows)
+    kf_nonlinear: np.ndarray  # (7,) vehicle constants of the nonlinear correction (core.kalman NL_*)
 
     def save(self, path: str | Path) -> None:
         path = Path(path)
@@ -114,6 +116,7 @@ _GRID_INDEXED = frozenset(
         "ad_B_y",
         "kf_Phi",
         "kf_K",
+        "kf_Gd",
     }
 )
 

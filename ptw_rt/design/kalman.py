@@ -24,10 +24,11 @@ K linearly in speed; `check` verifies the error dynamics between grid points.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import expm, solve_discrete_are
+from scipy.linalg import solve_discrete_are
 
+from ptw_rt.design.discretize import zoh
 from ptw_rt.model.parameters import VehicleParameters
-from ptw_rt.model.sharp import state_space
+from ptw_rt.model.sharp import descriptor, state_space
 from ptw_rt.settings import KalmanTuning
 
 N_X = 9
@@ -47,13 +48,26 @@ def output_matrix(p: VehicleParameters) -> np.ndarray:
     return C
 
 
-def design_point(p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning) -> tuple[np.ndarray, np.ndarray]:
-    """(Phi, K) at speed u: z+ = z + K (y - C z); z_next = Phi z+."""
+# rows of Sharp's descriptor model that carry generalised forces: lateral, yaw, roll, steer
+FORCE_ROWS = (2, 3, 4, 5)
+N_D = len(FORCE_ROWS)
+
+
+def design_point(
+    p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Phi, K, Gd) at speed u: z+ = z + K (y - C z); z_next = Phi z+ + Gd d.
+
+    d are the generalised forces by which the nonlinear vehicle differs from the linear model on the
+    lateral, yaw, roll and steer rows (`ptw_rt.core.kalman.nonlinear_correction`), held over the step:
+    a known input, so the filter's error dynamics (and its stability) are those of (Phi, K)."""
     A, B = state_space(p, u)
     Aa = np.zeros((N_X, N_X))
     Aa[:8, :8] = A
     Aa[:8, TAU] = B
-    Phi = expm(Aa * dt)
+    Bd = np.zeros((N_X, N_D))
+    Bd[:8, :] = np.linalg.inv(descriptor(p).E)[:, FORCE_ROWS]
+    Phi, Gd = zoh(Aa, Bd, dt)
     Q = np.zeros((N_X, N_X))
     Q[:8, :8] = np.diag(tuning.process_noise * STATE_SCALE**2 * dt)
     Q[TAU, TAU] = tuning.rider_torque_rate**2 * dt
@@ -69,12 +83,28 @@ def design_point(p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning
     C = output_matrix(p)
     P = solve_discrete_are(Phi.T, C.T, Q, R)
     K = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
-    return Phi, K
+    return Phi, K, Gd
 
 
 def design_grid(p: VehicleParameters, grid: np.ndarray, dt: float, tuning: KalmanTuning):
+    """(Phi, K, Gd) stacked over the speed grid."""
     points = [design_point(p, float(u), dt, tuning) for u in grid]
-    return np.array([pt[0] for pt in points]), np.array([pt[1] for pt in points])
+    return tuple(np.array([pt[k] for pt in points]) for k in range(3))
+
+
+def nonlinear_constants(p: VehicleParameters) -> np.ndarray:
+    """Constants of `ptw_rt.core.kalman.nonlinear_correction` (layout NL_* there)."""
+    return np.array(
+        [
+            p.roll_moment,
+            p.gyro_total,
+            p.gyro_front,
+            p.steer_stiffness,
+            p.mfe,
+            p.g,
+            np.sin(p.caster),
+        ]
+    )
 
 
 def error_dynamics(Phi: np.ndarray, K: np.ndarray, C: np.ndarray) -> np.ndarray:
