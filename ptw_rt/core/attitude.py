@@ -59,8 +59,10 @@ ST_P = ST_X + N_X  # covariance, row-major N_X * N_X
 ST_INIT = ST_P + N_X * N_X  # 1 once initialised
 ST_PSI_INIT = ST_INIT + 1  # 1 once the heading has been set from a GPS course
 ST_PREV = ST_PSI_INIT + 1  # inputs of the previous cycle (processed one cycle late)
-PREV_P, PREV_Q, PREV_R, PREV_FY, PREV_U, PREV_U_VAR, PREV_OK, PREV_P2, PREV_RG, PREV_RG2 = range(10)
-N_PREV = 10
+PREV_P, PREV_Q, PREV_R, PREV_FY, PREV_U, PREV_U_VAR, PREV_OK, PREV_P2, PREV_RG, PREV_RG2, PREV_RATES_OK = range(11)
+N_PREV = 11
+# rad/s: what a rate not measured this cycle (held, frozen or corrupt frames) may be, as far as the filter knows
+UNMEASURED_RATE_SD = 0.5
 ST_PSI_HIST = ST_PREV + N_PREV  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
 MAX_LATENCY_CYCLES = 32
 ST_PSI_HEAD = ST_PSI_HIST + MAX_LATENCY_CYCLES
@@ -320,6 +322,8 @@ def attitude_step(
         H[X_BAY] = 1.0
         H[X_AV] = c
         variance = prm[A_R_LATERAL] ** 2 + prev[PREV_U_VAR] * rg1 * rg1
+        if prev[PREV_RATES_OK] == 0.0 or not rates_ok:  # lever-arm derivatives from held rates: unknown
+            variance += (h * UNMEASURED_RATE_SD / dt) ** 2 * 0.01
         if _update(st, H, prev[PREV_FY] - predicted, variance, gate):
             st[ST_REJECTED] = 0.0
         else:
@@ -415,6 +419,9 @@ def attitude_step(
         P[i, X_AV] -= dt * FP[i, X_AV] / ta
     P[X_PHI, X_PHI] += prm[A_Q_ROLL] ** 2 * dt
     P[X_PSI, X_PSI] += prm[A_Q_HEADING] ** 2 * dt
+    if not rates_ok:  # integrated a held rate: the roll and heading may have moved by anything plausible
+        P[X_PHI, X_PHI] += (UNMEASURED_RATE_SD * dt) ** 2
+        P[X_PSI, X_PSI] += (UNMEASURED_RATE_SD * dt) ** 2
     qb = prm[A_Q_GYRO_BIAS] ** 2 * dt
     P[X_BP, X_BP] += qb
     P[X_BQ, X_BQ] += qb
@@ -440,7 +447,8 @@ def attitude_step(
     prev[PREV_FY] = f_y
     prev[PREV_U] = u
     prev[PREV_U_VAR] = u_sd * u_sd
-    prev[PREV_OK] = 1.0 if (rates_ok and accel_ok) else 0.0
+    prev[PREV_OK] = 1.0 if accel_ok else 0.0
+    prev[PREV_RATES_OK] = 1.0 if rates_ok else 0.0
 
     out[OUT_ROLL] = phi
     out[OUT_ROLL_RATE] = prev[PREV_P] - x[X_BP]

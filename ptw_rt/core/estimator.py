@@ -109,6 +109,7 @@ from ptw_rt.core.layout import (
     S_ROLL_RATE_BODY,
     S_STALE,
     S_STEER_COUNT,
+    S_SUSPECT,
     S_YAW_RATE_BODY,
     V_FY_FRONT,
     V_FY_REAR,
@@ -161,7 +162,9 @@ P_STA_LC_W = 34  # and on |d a_y / dt| [m/s^3]
 P_GEOM = 35  # [M, I_z, a_f, a_r] of the CoM-referred lateral/yaw sub-model (4 entries)
 P_ADAPT_MAX_RESIDUAL = 39  # m/s^2: RMS a_y innovation above which adaptation is frozen
 P_ROLL_TOLERANCE = 41  # rad: the published roll is valid while 3 sigma of it is within this
-PARAM_SIZE = 42
+P_MAX_STEER_STEP = 42  # counts per cycle: a larger jump of the encoder is not a steering motion
+P_STEER_RESYNC = 43  # cycles: after this many implausible jumps in a row the encoder's value is taken as the truth
+PARAM_SIZE = 44
 
 # ---- supervisor / glue state (float64) ----
 G_INIT = 0  # 1 once the first usable sample has been seen
@@ -180,7 +183,8 @@ G_TAU_FILTERED = 43
 G_AY_RESIDUAL_MS = 44  # mean square of the adaptive observer's a_y innovation (consistency of its model)
 G_STA = 45  # super-twisting force observer state (STA_STATE_SIZE)
 G_KF = G_STA + STA_STATE_SIZE  # fusion filter state (kf.STATE_SIZE)
-GLUE_SIZE = G_KF + kf.STATE_SIZE
+G_STEER_JUMPS = G_KF + kf.STATE_SIZE  # consecutive implausible steer-encoder jumps
+GLUE_SIZE = G_STEER_JUMPS + 1
 N_RAW = 8
 
 SCRATCH_SIZE = 112
@@ -311,20 +315,34 @@ def estimator_step(
         else:
             raw[k] = glue[G_LAST + k]
             reasons_now |= REASON_OUT_OF_RANGE
-    if stale & MSG_IMU_RATES:
+    # a stale message, or one whose rolling counter broke this cycle (its payload may be garbage): held
+    held = stale | int(sample[S_SUSPECT])
+    if held & MSG_IMU_RATES:
         for k in range(3):
             raw[k] = glue[G_LAST + k]
-    if stale & MSG_IMU_ACCEL:
+    if held & MSG_IMU_ACCEL:
         for k in range(3, 6):
             raw[k] = glue[G_LAST + k]
-    if stale & MSG_STEER:
+    if held & MSG_STEER:
         raw[6] = glue[G_LAST + 6]
+    elif glue[G_INIT] != 0.0:
+        # the steering cannot turn more than P_MAX_STEER_STEP counts in one cycle; a bigger jump is a corrupt
+        # frame (unless it persists: then the encoder really is there, e.g. after a long silence)
+        jump = abs(raw[6] - glue[G_LAST + 6])
+        jump = min(jump, prm[P_STEER_CPR] - jump)  # across the wrap
+        if jump > prm[P_MAX_STEER_STEP] and glue[G_STEER_JUMPS] < prm[P_STEER_RESYNC]:
+            glue[G_STEER_JUMPS] += 1.0
+            raw[6] = glue[G_LAST + 6]
+            reasons_now |= REASON_OUT_OF_RANGE
+        else:
+            glue[G_STEER_JUMPS] = 0.0
     for k in range(N_RAW):
         glue[G_LAST + k] = raw[k]
     if stale != 0:
         reasons_now |= REASON_STALE
     core_ok = (stale & (MSG_IMU_RATES | MSG_STEER)) == 0
     accel_ok = (stale & MSG_IMU_ACCEL) == 0
+    accel_trusted = (held & MSG_IMU_ACCEL) == 0  # this cycle's accelerometer values are new and sound
 
     gps_fix = sample[S_GPS_FIX]
     gps_new = (fresh & MSG_GPS) != 0 and (stale & MSG_GPS) == 0
@@ -351,7 +369,7 @@ def estimator_step(
         int(prm[P_LATENCY_SAMPLES]),
     )
     speed_known = spd[3] != 0.0  # the filter has had its first fix
-    rates_ok = (stale & MSG_IMU_RATES) == 0
+    rates_ok = (held & MSG_IMU_RATES) == 0
 
     # attitude (ptw_rt.core.attitude): roll and gyro biases from kinematics alone, no tyre model
     att_out = scratch[96 : 96 + att.OUT_SIZE]
@@ -378,7 +396,7 @@ def estimator_step(
         u if speed_known else 0.0,
         speed_sd if speed_known else 30.0,
         rates_ok,
-        accel_ok,
+        accel_trusted,
         _wrap_pi(course),
         course_new,
         standstill,
@@ -489,7 +507,7 @@ def estimator_step(
         y_kf[0] = delta
         y_kf[1] = r_ground
         y_kf[2] = p_rate
-        if accel_ok:
+        if accel_trusted:
             y_kf[3] = a_y
         else:  # no accelerometer: no innovation from it (the model's own prediction)
             acc = 0.0

@@ -26,7 +26,8 @@ S_STALE = 11  # MSG_* bits: no valid frame of that message within its timeout
 S_INPUT_REASONS = 12  # REASON_* bits raised by the I/O edge (decode errors, range, counters, overrun, send)
 S_GPS_COURSE = 13  # deg, course over ground (0..360, clockwise from north)
 S_IMU_AGE = 14  # s from the newest IMU_Rates frame's arrival to the cycle's time (latency compensation)
-SAMPLE_SIZE = 15
+S_SUSPECT = 15  # MSG_* bits: a frame of that message came with a broken rolling counter this cycle (not trusted)
+SAMPLE_SIZE = 16
 
 # input messages, bit order of EST_Status.SensorTimeouts
 MSG_IMU_RATES = 1

@@ -88,6 +88,9 @@ def build_params(settings, design) -> np.ndarray:
     prm[est_layout.P_STIFF_MAX_RESIDUAL] = est.stiffness_max_residual
     prm[est_layout.P_ADAPT_MAX_RESIDUAL] = est.adaptation_max_residual
     prm[est_layout.P_ROLL_TOLERANCE] = math.radians(est.roll_tolerance_deg)
+    # 3 rad/s of steer rate (the contract's range) at most, in encoder counts per cycle, with one count of margin
+    prm[est_layout.P_MAX_STEER_STEP] = 3.0 * dt * sens.steer_counts_per_rev / (2.0 * math.pi) + 1.0
+    prm[est_layout.P_STEER_RESYNC] = 10
     prm[est_layout.P_STA_LC_R] = est.force_observer_yaw_bound
     prm[est_layout.P_STA_LC_W] = est.force_observer_lateral_bound
     prm[est_layout.P_GEOM : est_layout.P_GEOM + 4] = lateral_yaw_constants(veh)

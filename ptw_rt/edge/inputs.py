@@ -41,6 +41,7 @@ from ptw_rt.core.layout import (
     S_ROLL_RATE_BODY,
     S_STALE,
     S_STEER_COUNT,
+    S_SUSPECT,
     S_TIME,
     S_YAW_RATE_BODY,
     SAMPLE_SIZE,
@@ -116,6 +117,7 @@ class InputTracker:
         self._stale_bits = sum(bit for h, _, bit in self._stale_plan if h.stale)
         self._fresh = 0
         self._reasons = 0
+        self._suspect = 0
 
     def _plan(self, name: str) -> tuple:
         """``(layout, health, counter checker, counter position or -1, range checks, slots, MSG_* bit)`` of one input.
@@ -171,6 +173,7 @@ class InputTracker:
         if counted and counter_pos >= 0 and checker.step(int(values[counter_pos])) not in _SEQUENCE_OK:
             h.counter_jumps += 1
             self._reasons |= REASON_COUNTER_JUMPS
+            self._suspect |= bit  # repeated, skipped or random counter: the payload may be garbage too
         for k, lo, hi in checks:
             if not lo <= values[k] <= hi:  # also NaN
                 h.out_of_range += 1
@@ -210,6 +213,7 @@ class InputTracker:
         row[S_INPUT_REASONS] = self._reasons
         # how old the IMU's newest sample is at this cycle (bounded: beyond a few cycles the input is stale)
         row[S_IMU_AGE] = min(max(now - self._imu_health.last_valid_time, 0.0), MAX_IMU_AGE)
+        row[S_SUSPECT] = self._suspect
         if sample.dtype is _FLOAT64 and sample.shape == _SAMPLE_SHAPE and sample.flags.c_contiguous:
             self._row_struct.pack_into(sample, 0, *row)  # float64 bytes straight into the array's buffer
         else:  # any other array: as numpy assigns it
@@ -217,6 +221,7 @@ class InputTracker:
             sample[:SAMPLE_SIZE] = row
         self._fresh = 0
         self._reasons = 0
+        self._suspect = 0
 
     def stale_bits(self) -> int:
         """MSG_* bits of the inputs stale at the last ``fill`` (all of them before the first)."""
