@@ -49,6 +49,31 @@ ATTITUDE_SCHEMA = Section(
     },
 )
 
+# Tyre bank (ptw_rt/design/tyre_bank.py, ptw_rt/core/tyre_bank.py): the tyres' scale factor k from a bank
+# of fusion filters, one per hypothesis of k.
+TYRE_BANK_SCHEMA = Section(
+    fields={},
+    optional={
+        "min_scale": (Number("", gt=0, le=1), 0.28),
+        "max_scale": (Number("", ge=1, le=5), 1.75),
+        "step": (Number("", gt=1.02, le=2), 1.15),
+        "learning_memory": (Number("s", gt=0), 10.0),
+        "idle_memory": (Number("s", gt=0), 120.0),
+        "prior_sd": (Number("", gt=0), 0.3),
+        "restored_sd": (Number("", gt=0), 0.15),
+        "consistency_window": (Number("s", gt=0), 2.0),
+        "fast_consistency_window": (Number("s", gt=0), 0.1),
+        "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.3),
+        "valid_log_sd": (Number("", gt=0), 0.05),
+        "valid_max_nis": (Number("", gt=0), 6.0),
+        "valid_max_nis_fast": (Number("", gt=0), 12.0),
+        "min_learning_speed": (Number("m/s", gt=0), 5.5),
+        "excitation_window": (Number("s", gt=0), 2.0),
+        "min_excitation_lateral_accel": (Number("m/s^2", gt=0), 0.8),
+        "min_excitation_yaw_rate": (Number("rad/s", gt=0), 0.04),
+    },
+)
+
 ESTIMATOR_SCHEMA = Section(
     {
         "sample_time": Number("s", gt=0, le=0.1),
@@ -115,7 +140,10 @@ ESTIMATOR_SCHEMA = Section(
             optional={"roll_tolerance_deg": (Number("deg", gt=0, le=10), 3.0)},
         ),
     },
-    optional={"attitude": (ATTITUDE_SCHEMA, ATTITUDE_SCHEMA.check("estimator.attitude", {}))},
+    optional={
+        "attitude": (ATTITUDE_SCHEMA, ATTITUDE_SCHEMA.check("estimator.attitude", {})),
+        "tyre_bank": (TYRE_BANK_SCHEMA, TYRE_BANK_SCHEMA.check("estimator.tyre_bank", {})),
+    },
 )
 
 # Calibration of the sensors as mounted on this vehicle: read by the estimator's
@@ -251,6 +279,29 @@ class KalmanTuning:
 
 
 @dataclass(frozen=True)
+class TyreBankTuning:
+    """The tyre bank's hypotheses, memory and validity (units in TYRE_BANK_SCHEMA)."""
+
+    min_scale: float
+    max_scale: float
+    step: float
+    learning_memory: float
+    idle_memory: float
+    prior_sd: float
+    restored_sd: float
+    consistency_window: float
+    fast_consistency_window: float
+    max_learning_roll: float
+    valid_log_sd: float
+    valid_max_nis: float
+    valid_max_nis_fast: float
+    min_learning_speed: float
+    excitation_window: float
+    min_excitation_lateral_accel: float
+    min_excitation_yaw_rate: float
+
+
+@dataclass(frozen=True)
 class AttitudeTuning:
     """Noise model of the kinematic attitude filter (ptw_rt.core.attitude); units in ATTITUDE_SCHEMA."""
 
@@ -293,6 +344,7 @@ class EstimatorTuning:
     roll_fusion_time_constant: float
     kalman: KalmanTuning
     attitude: AttitudeTuning
+    tyre_bank: TyreBankTuning
     force_observer_yaw_bound: float
     force_observer_lateral_bound: float
     derivative_filter_hz: float
@@ -442,6 +494,7 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         roll_fusion_time_constant=est["roll_fusion_time_constant"],
         kalman=KalmanTuning(**est["fusion_filter"]),
         attitude=AttitudeTuning(**est["attitude"]),
+        tyre_bank=TyreBankTuning(**est["tyre_bank"]),
         force_observer_yaw_bound=est["force_observer_yaw_bound"],
         force_observer_lateral_bound=est["force_observer_lateral_bound"],
         derivative_filter_hz=est["derivative_filter_hz"],

@@ -56,7 +56,15 @@ N_D = len(FORCE_ROWS)
 def design_point(
     p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(Phi, K, Gd) at speed u: z+ = z + K (y - C z); z_next = Phi z+ + Gd d.
+    """(Phi, K, Gd) at speed u (see `design_point_with_innovation`)."""
+    return design_point_with_innovation(p, u, dt, tuning)[:3]
+
+
+def design_point_with_innovation(
+    p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(Phi, K, Gd, S) at speed u: z+ = z + K (y - C z); z_next = Phi z+ + Gd d; S = C P C' + R, the
+    covariance of the innovation y - C z (what the tyre bank's likelihoods need).
 
     d are the generalised forces by which the nonlinear vehicle differs from the linear model on the
     lateral, yaw, roll and steer rows (`ptw_rt.core.kalman.nonlinear_correction`), held over the step:
@@ -82,8 +90,9 @@ def design_point(
     )
     C = output_matrix(p)
     P = solve_discrete_are(Phi.T, C.T, Q, R)
-    K = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
-    return Phi, K, Gd
+    S = C @ P @ C.T + R
+    K = P @ C.T @ np.linalg.inv(S)
+    return Phi, K, Gd, S
 
 
 def design_grid(p: VehicleParameters, grid: np.ndarray, dt: float, tuning: KalmanTuning):

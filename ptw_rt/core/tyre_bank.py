@@ -1,0 +1,272 @@
+"""The tyres' scale from a bank of fusion filters (multiple-model estimation; jitted, allocation-free).
+
+Each hypothesis h is the steady-state fusion filter (ptw_rt.core.kalman) of the vehicle whose four tyre
+stiffnesses are k_h times the nominal ones (design: ptw_rt.design.tyre_bank). All of them run every
+cycle on the same measurements y = [steer, yaw rate, roll rate, a_y, kinematic roll]. The filter whose
+tyres are right explains y best; its innovation e = y - C z is white with covariance S, so
+
+    log L_h += -(e' S^-1 e + log det S) / 2          (only while learning is allowed)
+
+and the posterior weight of h is w_h ~ exp(log L_h). Evidence is forgotten with a time constant
+(`learning_memory` while learning, so a new road is followed; `idle_memory` otherwise, so what was
+learned fades into the prior spread around the current estimate if nothing confirms it), and the prior
+is a Gaussian in log k around the start value (nominal, a persisted value, or a wrong start in tests).
+
+Outputs: the posterior mixture of the filters' states (what the lateral-dynamics filter publishes: the
+learned tyres are the ones the published torque and forces come from), the scale estimate
+k = exp(sum w_h log k_h), its spread sd(log k), the weight and the windowed mean normalised innovation
+(NIS) of the most likely filter: small spread says the data single out one tyre; a NIS near its
+expected value says that tyre explains the data. Both together make the valid bit (the supervisor's).
+
+Learning is allowed by the caller only from sound inputs, above the validity speed and below a lean
+angle beyond which the plant's tyres leave their linear range (the small-slip stiffness is what we
+estimate; a saturated tyre would look softer).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ptw_rt.core import kalman as kf
+from ptw_rt.core.schedule import grid_position
+
+# ---- parameters (float64 vector, `bank_params`) ----
+B_COUNT = 0  # hypotheses H
+B_LEARN_FORGET = 1  # per-cycle factor of the evidence while learning
+B_IDLE_FORGET = 2  # per-cycle factor while not learning
+B_PRIOR_SD = 3  # sd of log k of the prior around the start value
+B_NIS_ALPHA = 4  # share of each cycle's NIS in the windowed mean
+B_FLOOR = 5  # log-likelihoods are kept within this of the best (a hypothesis can always come back)
+B_NIS_FAST_ALPHA = 6  # the same over a short window: a sudden change of road shows here first
+B_EXCITATION_ALPHA = 7  # share of each cycle in the mean squares of a_y and yaw rate (excitation)
+B_MIN_AY = 8  # m/s^2: RMS lateral acceleration above which the ride tells tyres apart ...
+B_MIN_YAW_RATE = 9  # rad/s: ... or RMS yaw rate
+PARAM_SIZE = 10
+
+# ---- state layout: H blocks of (z, init) then per-hypothesis vectors then scalars ----
+BLOCK = kf.STATE_SIZE  # one fusion filter's state
+
+
+@njit(cache=True)
+def state_size(count: int) -> int:
+    return count * BLOCK + 4 * count + N_SCALARS
+
+
+@njit(cache=True)
+def _logl0(count: int) -> int:
+    return count * BLOCK
+
+
+@njit(cache=True)
+def _nis0(count: int) -> int:
+    return count * BLOCK + count
+
+
+@njit(cache=True)
+def _prior0(count: int) -> int:
+    return count * BLOCK + 2 * count
+
+
+@njit(cache=True)
+def _nis_fast0(count: int) -> int:
+    return count * BLOCK + 3 * count
+
+
+@njit(cache=True)
+def _scalars0(count: int) -> int:
+    return count * BLOCK + 4 * count
+
+
+SC_CENTRE = 0  # log k of the prior's centre
+SC_INIT = 1  # 1 once the prior is set
+SC_MS_AY = 2  # windowed mean square of a_y
+SC_MS_R = 3  # windowed mean square of the yaw rate
+N_SCALARS = 4
+
+# ---- outputs ----
+OUT_Z = 0  # posterior mixture of the filters' corrected states (kf.N_Z)
+OUT_SCALE = kf.N_Z  # k
+OUT_LOG_SD = OUT_SCALE + 1  # sd of log k
+OUT_MAP_WEIGHT = OUT_SCALE + 2  # weight of the most likely hypothesis
+OUT_MAP_NIS = OUT_SCALE + 3  # its windowed mean NIS
+OUT_MAP_SCALE = OUT_SCALE + 4  # its k
+OUT_MAP_NIS_FAST = OUT_SCALE + 5  # its NIS over the short window
+OUT_LEARNING = OUT_SCALE + 6  # 1 if this cycle's evidence moved the estimate
+OUT_SIZE = OUT_SCALE + 7
+
+# scratch needed by `bank_step`: innovation (N_Y), one filter's output (N_Z), correction forces (N_D)
+SCRATCH_SIZE = kf.N_Y + kf.N_Z + kf.N_D
+
+
+def bank_params(count: int, dt: float, tuning) -> np.ndarray:
+    """From the config's `estimator.tyre_bank` section (`TyreBankTuning`)."""
+    prm = np.zeros(PARAM_SIZE)
+    prm[B_COUNT] = count
+    prm[B_LEARN_FORGET] = math.exp(-dt / tuning.learning_memory)
+    prm[B_IDLE_FORGET] = math.exp(-dt / tuning.idle_memory)
+    prm[B_PRIOR_SD] = tuning.prior_sd
+    prm[B_NIS_ALPHA] = 1.0 - math.exp(-dt / tuning.consistency_window)
+    prm[B_FLOOR] = 50.0
+    prm[B_NIS_FAST_ALPHA] = 1.0 - math.exp(-dt / tuning.fast_consistency_window)
+    prm[B_EXCITATION_ALPHA] = 1.0 - math.exp(-dt / tuning.excitation_window)
+    prm[B_MIN_AY] = tuning.min_excitation_lateral_accel
+    prm[B_MIN_YAW_RATE] = tuning.min_excitation_yaw_rate
+    return prm
+
+
+def new_state(count: int) -> np.ndarray:
+    return np.zeros(state_size(count))
+
+
+@njit(cache=True)
+def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float, sd: float) -> None:
+    """Start from tyres `centre` x nominal, with sd of log k `sd` (forgets all evidence)."""
+    H = int(prm[B_COUNT])
+    lc = math.log(centre)
+    for h in range(H):
+        g = (math.log(scale[h]) - lc) / sd
+        st[_prior0(H) + h] = -0.5 * g * g
+        st[_logl0(H) + h] = st[_prior0(H) + h]
+        st[_nis0(H) + h] = kf.N_Y  # its expected value: no claim either way
+        st[_nis_fast0(H) + h] = kf.N_Y
+    st[_scalars0(H) + SC_CENTRE] = lc
+    st[_scalars0(H) + SC_INIT] = 1.0
+
+
+@njit(cache=True)
+def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
+    """Re-initialise every filter's dynamic states at the next step; the evidence is kept."""
+    H = int(prm[B_COUNT])
+    for h in range(H):
+        st[h * BLOCK + kf.INIT] = 0.0
+
+
+@njit(cache=True)
+def bank_step(
+    st: np.ndarray,
+    out: np.ndarray,
+    scratch: np.ndarray,
+    prm: np.ndarray,
+    y: np.ndarray,
+    u: float,
+    roll_init: float,
+    observe: bool,
+    learn: bool,
+    grid: np.ndarray,
+    scale: np.ndarray,
+    Phi: np.ndarray,
+    K: np.ndarray,
+    C: np.ndarray,
+    Gd: np.ndarray,
+    nl: np.ndarray,
+    Sinv: np.ndarray,
+    logdet: np.ndarray,
+) -> None:
+    """One cycle: each filter's innovation, evidence, posterior, then every filter's step, mixed.
+
+    observe: this cycle's measurements are sound (the innovations are checked for consistency);
+    learn: and they may also move the estimate (linear range of the tyres, see the module doc)."""
+    H = int(prm[B_COUNT])
+    G = grid.shape[0]
+    if st[_scalars0(H) + SC_INIT] == 0.0:
+        set_prior(st, prm, scale, 1.0, prm[B_PRIOR_SD])
+    i, w = grid_position(grid, u)
+    e = scratch[0 : kf.N_Y]
+    zh = scratch[kf.N_Y : kf.N_Y + kf.N_Z]
+    d = scratch[kf.N_Y + kf.N_Z : kf.N_Y + kf.N_Z + kf.N_D]
+    logl = st[_logl0(H) : _logl0(H) + H]
+    nisw = st[_nis0(H) : _nis0(H) + H]
+    nisf = st[_nis_fast0(H) : _nis_fast0(H) + H]
+    prior = st[_prior0(H) : _prior0(H) + H]
+    forget = prm[B_LEARN_FORGET] if learn else prm[B_IDLE_FORGET]
+    alpha = prm[B_NIS_ALPHA]
+
+    # 1. evidence: the innovation of each filter's prediction (a filter that just (re)started has none).
+    # Only an excited ride tells tyres apart: on a straight road every filter sees the same noise, and
+    # the likelihood would only rank how well each one's noise model fits it (tests/test_tyre_bank.py).
+    sc = _scalars0(H)
+    if observe:
+        a = prm[B_EXCITATION_ALPHA]
+        st[sc + SC_MS_AY] += a * (y[3] * y[3] - st[sc + SC_MS_AY])
+        st[sc + SC_MS_R] += a * (y[1] * y[1] - st[sc + SC_MS_R])
+    excited = st[sc + SC_MS_AY] > prm[B_MIN_AY] ** 2 or st[sc + SC_MS_R] > prm[B_MIN_YAW_RATE] ** 2
+    learn = learn and observe and excited
+    for h in range(H):
+        z = st[h * BLOCK : h * BLOCK + kf.N_Z]
+        if observe and st[h * BLOCK + kf.INIT] != 0.0:
+            j = h * G + i
+            for r in range(kf.N_Y):
+                acc = y[r]
+                for c in range(kf.N_Z):
+                    acc -= C[r, c] * z[c]
+                e[r] = acc
+            nis = 0.0
+            for r in range(kf.N_Y):
+                for c in range(kf.N_Y):
+                    nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
+            nisw[h] += alpha * (nis - nisw[h])
+            nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
+            if learn:
+                ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
+                logl[h] = prior[h] + forget * (logl[h] - prior[h]) - 0.5 * (nis + ld)
+            else:
+                logl[h] = prior[h] + forget * (logl[h] - prior[h])
+        else:
+            logl[h] = prior[h] + forget * (logl[h] - prior[h])
+
+    # 2. posterior (the floor keeps every hypothesis within reach of the best: a road can change)
+    best = logl[0]
+    for h in range(1, H):
+        if logl[h] > best:
+            best = logl[h]
+    total = 0.0
+    for h in range(H):
+        if not logl[h] >= best - prm[B_FLOOR]:  # also a NaN
+            logl[h] = best - prm[B_FLOOR]
+        total += math.exp(logl[h] - best)
+    mean_log = 0.0
+    map_h = 0
+    map_w = 0.0
+    for h in range(H):
+        wh = math.exp(logl[h] - best) / total
+        mean_log += wh * math.log(scale[h])
+        if wh > map_w:
+            map_w = wh
+            map_h = h
+    var_log = 0.0
+    for h in range(H):
+        dl = math.log(scale[h]) - mean_log
+        var_log += math.exp(logl[h] - best) / total * dl * dl
+
+    # 3. every filter's step; the published states are the posterior mixture of the corrected ones
+    for k in range(kf.N_Z):
+        out[OUT_Z + k] = 0.0
+    for h in range(H):
+        block = h * G
+        kf.kalman_step(
+            st[h * BLOCK : (h + 1) * BLOCK],
+            zh,
+            y,
+            u,
+            roll_init,
+            grid,
+            Phi[block : block + G],
+            K[block : block + G],
+            C,
+            Gd[block : block + G],
+            nl,
+            d,
+        )
+        wh = math.exp(logl[h] - best) / total
+        for k in range(kf.N_Z):
+            out[OUT_Z + k] += wh * zh[k]
+    out[OUT_SCALE] = math.exp(mean_log)
+    out[OUT_LOG_SD] = math.sqrt(var_log)
+    out[OUT_MAP_WEIGHT] = map_w
+    out[OUT_MAP_NIS] = nisw[map_h]
+    out[OUT_MAP_SCALE] = scale[map_h]
+    out[OUT_MAP_NIS_FAST] = nisf[map_h]
+    out[OUT_LEARNING] = 1.0 if learn else 0.0

@@ -1,0 +1,79 @@
+"""Offline design of the tyre bank: one fusion filter per hypothesis of the tyres' scale.
+
+Every real scooter's tyres differ from the nominal file (pressure, temperature, wear, a wet road). We
+parametrise the difference by one factor k on all four small-slip stiffnesses (C_af, C_gf, C_ar, C_gr):
+it is what the data identify under ordinary riding (docs/estimator.md, "Tyres"), and what a changed road
+friction does. The bank holds the steady-state fusion filter (ptw_rt.design.kalman) designed for the
+vehicle with its tyres scaled by each k of a log-spaced grid, at every grid speed, plus each filter's
+innovation covariance S; the runtime (ptw_rt.core.tyre_bank) weighs the filters by the likelihood of
+their innovations.
+
+Tables (H hypotheses, G grid speeds; hypothesis-major, so rows h*G .. h*G+G-1 are hypothesis h):
+  tb_scale (H,), tb_Phi (H*G, 9, 9), tb_K (H*G, 9, 5), tb_Gd (H*G, 9, 4), tb_Sinv (H*G, 5, 5),
+  tb_logdet (H*G, 1, 1) (log det S, as a 3-D table so it interpolates like the others).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ptw_rt.design import kalman
+from ptw_rt.model.parameters import VehicleParameters
+from ptw_rt.settings import KalmanTuning, TyreBankTuning
+
+
+def scales(tuning: TyreBankTuning) -> np.ndarray:
+    """The hypotheses: powers of `step` from min_scale to max_scale; 1 (the nominal tyres) is always one."""
+    ratio = math.log(tuning.step)
+    lo = math.ceil(math.log(tuning.min_scale) / ratio - 1e-9)
+    hi = math.floor(math.log(tuning.max_scale) / ratio + 1e-9)
+    return np.exp(np.arange(lo, hi + 1) * ratio)
+
+
+def design_bank(
+    p: VehicleParameters, grid: np.ndarray, dt: float, kalman_tuning: KalmanTuning, tuning: TyreBankTuning
+) -> dict[str, np.ndarray]:
+    ks = scales(tuning)
+    phi, gain, gd, sinv, logdet = [], [], [], [], []
+    for k in ks:
+        pk = p.scaled(stiffness=float(k))
+        for u in grid:
+            Phi, K, Gd, S = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning)
+            phi.append(Phi)
+            gain.append(K)
+            gd.append(Gd)
+            sinv.append(np.linalg.inv(S))
+            logdet.append(np.linalg.slogdet(S)[1])
+    return {
+        "tb_scale": ks,
+        "tb_Phi": np.array(phi),
+        "tb_K": np.array(gain),
+        "tb_Gd": np.array(gd),
+        "tb_Sinv": np.array(sinv),
+        "tb_logdet": np.array(logdet).reshape(-1, 1, 1),
+    }
+
+
+def bank_spectral_radii(data, grid: np.ndarray, between: int) -> tuple[float, float]:
+    """Worst spectral radius of every hypothesis' error dynamics at the grid speeds and `between` speeds
+    inside each interval (linear interpolation, as the runtime does)."""
+    G = len(grid)
+    C = data.kf_C
+    at_grid, inside = 0.0, 0.0
+    for h in range(len(data.tb_scale)):
+        block = slice(h * G, (h + 1) * G)
+        Phi, K = data.tb_Phi[block], data.tb_K[block]
+        for i in range(G):
+            at_grid = max(at_grid, _rho(kalman.error_dynamics(Phi[i], K[i], C)))
+        for i in range(G - 1):
+            for w in np.linspace(0.0, 1.0, between + 2)[1:-1]:
+                Pw = (1 - w) * Phi[i] + w * Phi[i + 1]
+                Kw = (1 - w) * K[i] + w * K[i + 1]
+                inside = max(inside, _rho(kalman.error_dynamics(Pw, Kw, C)))
+    return at_grid, inside
+
+
+def _rho(M: np.ndarray) -> float:
+    return float(np.max(np.abs(np.linalg.eigvals(M))))

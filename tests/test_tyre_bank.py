@@ -1,0 +1,105 @@
+"""The tyre bank alone (ptw_rt.core.tyre_bank, design ptw_rt.design.tyre_bank) on the linear model.
+
+A reduced bank (5 hypotheses, 3 grid speeds) keeps the design to a second; the runtime code is the same.
+The plant is the linear Sharp model itself (exact ZOH) with its tyres scaled by a known factor and a rider
+torque that excites it; the measurements are the fusion filter's y = [steer, yaw rate, roll rate, a_y,
+roll] with white noise of the design's size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from ptw_rt.core import kalman as ck
+from ptw_rt.core import tyre_bank as tb
+from ptw_rt.design import kalman as dk
+from ptw_rt.design import tyre_bank as dtb
+from ptw_rt.paths import DEFAULT_CONFIG
+from ptw_rt.settings import load_settings
+
+DT = 0.01
+U = 20.0
+
+
+@pytest.fixture(scope="module")
+def bank():
+    s = load_settings(DEFAULT_CONFIG)
+    tuning = replace(s.estimator.tyre_bank, min_scale=0.55, max_scale=1.75, step=1.3)
+    grid = np.array([15.0, 20.0, 25.0])
+    tables = dtb.design_bank(s.vehicle, grid, DT, s.estimator.kalman, tuning)
+    return s, tuning, grid, tables
+
+
+def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0):
+    """y per cycle from the linear model whose tyres are k_true x nominal (no nonlinear terms)."""
+    p = s.vehicle.scaled(stiffness=k_true)
+    Phi, _, _ = dk.design_point(p, U, DT, s.estimator.kalman)
+    C = dk.output_matrix(p)
+    rng = np.random.default_rng(seed)
+    tun = s.estimator.kalman
+    noise = np.array([tun.steer_noise, tun.yaw_rate_noise, tun.roll_rate_noise, tun.lateral_accel_noise, 0.002])
+    n = int(seconds / DT)
+    x = np.zeros(ck.N_Z)
+    Y = np.zeros((n, ck.N_Y))
+    for k in range(n):
+        t = k * DT
+        x[ck.TAU] = (9.0 * math.sin(1.3 * t) + 6.0 * math.sin(3.1 * t + 1.0)) if excite else 0.0
+        Y[k] = C @ x + noise * rng.standard_normal(ck.N_Y)
+        x = Phi @ x
+    return Y
+
+
+def _run(bank, Y, start: float = 1.0):
+    s, tuning, grid, t = bank
+    H = len(t["tb_scale"])
+    prm = tb.bank_params(H, DT, tuning)
+    st = tb.new_state(H)
+    tb.set_prior(st, prm, t["tb_scale"], start, tuning.prior_sd)
+    out = np.zeros(tb.OUT_SIZE)
+    scratch = np.zeros(tb.SCRATCH_SIZE)
+    C = dk.output_matrix(s.vehicle)
+    no_correction = np.zeros(7)  # the plant is linear: no nonlinear correction
+    trace = np.zeros((len(Y), 3))
+    for k, y in enumerate(Y):
+        tb.bank_step(
+            st, out, scratch, prm, y, U, y[4], True, True, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
+            t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"],
+        )  # fmt: skip
+        trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS]
+    return trace, out
+
+
+@pytest.mark.parametrize("k_true", [0.769, 1.0, 1.3])
+def test_finds_the_tyres_of_an_excited_ride(bank, k_true):
+    trace, out = _run(bank, _ride(bank[0], k_true, 30.0, excite=True))
+    assert out[tb.OUT_MAP_SCALE] == pytest.approx(k_true, rel=0.01)
+    assert out[tb.OUT_SCALE] == pytest.approx(k_true, rel=0.05)
+    assert out[tb.OUT_LOG_SD] < 0.05  # concentrated
+    assert out[tb.OUT_MAP_NIS] < 2.0 * ck.N_Y  # and the chosen filter explains the data
+
+
+def test_converges_from_a_wrong_start(bank):
+    trace, _ = _run(bank, _ride(bank[0], 1.0, 30.0, excite=True, seed=3), start=1.3)
+    outside = np.flatnonzero(np.abs(trace[:, 0] / 1.0 - 1.0) > 0.10)
+    settled_from = (outside[-1] + 1) * DT if outside.size else 0.0  # within 10 % from here to the end
+    assert settled_from <= 10.0
+
+
+def test_claims_nothing_without_excitation(bank):
+    """A straight road (no torque, no steering): the data cannot tell tyres apart; the spread stays wide."""
+    trace, out = _run(bank, _ride(bank[0], 0.769, 30.0, excite=False))
+    assert out[tb.OUT_LOG_SD] > 0.15
+    assert np.all(trace[:, 1] > 0.15)
+
+
+def test_mixture_is_a_filter_estimate(bank):
+    """The published states (the posterior mixture) equal the true hypothesis' filter once it wins."""
+    s = bank[0]
+    Y = _ride(s, 1.0, 20.0, excite=True, seed=5)
+    _, out = _run(bank, Y)
+    assert np.all(np.isfinite(out))
+    assert abs(out[tb.OUT_Z + ck.PHI] - Y[-1, 4]) < 0.01
