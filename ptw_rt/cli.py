@@ -124,8 +124,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--speeds",
         type=_speeds,
-        default=[20, 50, 80, 100, 120],
-        help="km/h, comma-separated (default: 20,50,80,100,120)",
+        default=None,
+        help="km/h, comma-separated (default: 20,50,80,100,120; with --outputs 10,15,...,130)",
+    )
+    p.add_argument(
+        "--outputs",
+        nargs="?",
+        const="all",
+        default=None,
+        help="strong detectability of sensor output sets (issue #16): 'all' (the default candidates) or "
+        "'steer,lat_accel;roll_rate' (signals: steer, yaw_rate, roll_rate, lat_accel); speeds default 10-130 km/h",
+    )
+    p.add_argument(
+        "--unknown",
+        choices=("phi_tau", "tau", "tau_state"),
+        default=None,
+        help="with --outputs: unknown inputs [phi, tau] (roll removed), tau (roll measured), tau_state (roll a state)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.set_defaults(handler=_analyze)

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ptw_rt.design import kalman
+from ptw_rt.design import kalman, uio_sensors
 from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
 from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
@@ -61,6 +61,16 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
     ad_B = np.array(ad_B)
     nominal = np.array(p.nominal_stiffness())
     kf_Phi, kf_K, kf_Gd = kalman.design_grid(p, grid, dt, est.kalman)
+    us = uio_sensors.design_grid(
+        p,
+        grid,
+        uio_sensors.CHOSEN_OUTPUTS,
+        uio_sensors.CHOSEN_UNKNOWN,
+        est.uihosmo_decay_rate,
+        est.uihosmo_output_weight,
+        dt,
+        uio_sensors.CHOSEN_EXTRA,
+    )
     data = DesignData(
         format_version=FORMAT_VERSION,
         config_hash=settings.config_hash,
@@ -110,8 +120,9 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         kf_C=kalman.output_matrix(p),
         kf_Gd=kf_Gd,
         kf_nonlinear=kalman.nonlinear_constants(p),
+        **uio_sensors.design_fields(p, us, est.min_valid_speed_kmh / 3.6),
     )
-    return data, {"lmi_solution": sol, "uihosmo": uh}
+    return data, {"lmi_solution": sol, "uihosmo": uh, "uio_sensors": us}
 
 
 def uihosmo_radius(Phi: np.ndarray, Phi22: np.ndarray) -> float:
@@ -123,19 +134,21 @@ def check_design(data: DesignData) -> dict[str, Any]:
     """Spectral radii of each observer's discrete error dynamics at and between grid speeds."""
     grid = data.grid
     uh_rho = [uihosmo_radius(data.uh_Phi[i], data.uh_Phi22[i]) for i in range(len(grid))]
+    us_rho = [uihosmo_radius(data.us_Phi[i], data.us_Phi22[i]) for i in range(len(grid))]
     ad_rho = [spectral_radius(data.ad_Phi[i]) for i in range(len(grid))]
     kf_rho = [spectral_radius(kalman.error_dynamics(data.kf_Phi[i], data.kf_K[i], data.kf_C)) for i in range(len(grid))]
-    worst = {"uihosmo": 0.0, "adaptive": 0.0, "fusion": 0.0}
-    worst_at = {"uihosmo": None, "adaptive": None, "fusion": None}
+    worst = {"uihosmo": 0.0, "adaptive": 0.0, "fusion": 0.0, "uio_sensors": 0.0}
+    worst_at = {"uihosmo": None, "adaptive": None, "fusion": None, "uio_sensors": None}
     for i in range(len(grid) - 1):
         for w in np.linspace(0.0, 1.0, BETWEEN_GRID_SAMPLES + 2)[1:-1]:
             u = (1 - w) * grid[i] + w * grid[i + 1]
             r_uh = uihosmo_radius(interpolate(grid, data.uh_Phi, u), interpolate(grid, data.uh_Phi22, u))
             r_ad = spectral_radius(interpolate(grid, data.ad_Phi, u))
+            r_us = uihosmo_radius(interpolate(grid, data.us_Phi, u), interpolate(grid, data.us_Phi22, u))
             r_kf = spectral_radius(
                 kalman.error_dynamics(interpolate(grid, data.kf_Phi, u), interpolate(grid, data.kf_K, u), data.kf_C)
             )
-            for key, r in (("uihosmo", r_uh), ("adaptive", r_ad), ("fusion", r_kf)):
+            for key, r in (("uihosmo", r_uh), ("adaptive", r_ad), ("fusion", r_kf), ("uio_sensors", r_us)):
                 if r > worst[key]:
                     worst[key], worst_at[key] = r, u
     feasible = bool(math.isfinite(data.ad_lmi_slack))
@@ -152,11 +165,20 @@ def check_design(data: DesignData) -> dict[str, Any]:
             "lmi": {"feasible": feasible, "slack": data.ad_lmi_slack, "residual": data.ad_lmi_residual},
         },
         "fusion": {"spectral_radius": kf_rho},
+        "uio_sensors": {
+            "spectral_radius": us_rho,
+            "outputs": [uio_sensors.OUTPUT_NAMES[int(c)] for c in data.us_outputs],
+            "observed": [uio_sensors.OUTPUT_NAMES[int(c)] for c in data.us_observed],
+            "unknown_inputs": "tau (roll measured)" if data.us_roll_input else "phi, tau",
+            "detectability_floor_kmh": data.us_detectability_floor * 3.6,
+            "min_valid_speed_kmh": data.us_min_valid_speed * 3.6,
+        },
         "between_grid": {
             "max_spectral_radius": max(worst.values()),
             "uihosmo": {"max_spectral_radius": worst["uihosmo"], "at_kmh": worst_at["uihosmo"] * 3.6},
             "adaptive": {"max_spectral_radius": worst["adaptive"], "at_kmh": worst_at["adaptive"] * 3.6},
             "fusion": {"max_spectral_radius": worst["fusion"], "at_kmh": worst_at["fusion"] * 3.6},
+            "uio_sensors": {"max_spectral_radius": worst["uio_sensors"], "at_kmh": worst_at["uio_sensors"] * 3.6},
             "samples_per_interval": BETWEEN_GRID_SAMPLES,
         },
     }
@@ -165,24 +187,29 @@ def check_design(data: DesignData) -> dict[str, Any]:
         and max(uh_rho) < 1.0
         and max(ad_rho) < 1.0
         and max(kf_rho) < 1.0
+        and max(us_rho) < 1.0
         and result["between_grid"]["max_spectral_radius"] < 1.0
     )
     return result
 
 
 def format_check(result: dict[str, Any]) -> str:
-    lines = [f"{'speed [km/h]':>12} {'UIHOSMO rho':>12} {'detectable':>10} {'adaptive rho':>13} {'fusion rho':>11}"]
-    uh, ad, kf = result["uihosmo"], result["adaptive"], result["fusion"]
+    lines = [
+        f"{'speed [km/h]':>12} {'UIHOSMO rho':>12} {'detectable':>10} {'adaptive rho':>13} {'fusion rho':>11}"
+        f" {'UIO-sensors rho':>16}"
+    ]
+    uh, ad, kf, us = result["uihosmo"], result["adaptive"], result["fusion"], result["uio_sensors"]
     rows = zip(
         result["grid_kmh"],
         uh["spectral_radius"],
         uh["detectable"],
         ad["spectral_radius"],
         kf["spectral_radius"],
+        us["spectral_radius"],
         strict=True,
     )
-    for v, r1, d, r2, r3 in rows:
-        lines.append(f"{v:12.1f} {r1:12.4f} {'yes' if d else 'NO':>10} {r2:13.4f} {r3:11.4f}")
+    for v, r1, d, r2, r3, r4 in rows:
+        lines.append(f"{v:12.1f} {r1:12.4f} {'yes' if d else 'NO':>10} {r2:13.4f} {r3:11.4f} {r4:16.4f}")
     bg = result["between_grid"]
     lmi = ad["lmi"]
     lines += [
@@ -191,7 +218,11 @@ def format_check(result: dict[str, Any]) -> str:
         f"between grid points ({bg['samples_per_interval']} per interval, interpolated gains): max rho "
         f"UIHOSMO {bg['uihosmo']['max_spectral_radius']:.4f} at {bg['uihosmo']['at_kmh']:.1f} km/h, "
         f"adaptive {bg['adaptive']['max_spectral_radius']:.4f} at {bg['adaptive']['at_kmh']:.1f} km/h, "
-        f"fusion {bg['fusion']['max_spectral_radius']:.4f} at {bg['fusion']['at_kmh']:.1f} km/h",
+        f"fusion {bg['fusion']['max_spectral_radius']:.4f} at {bg['fusion']['at_kmh']:.1f} km/h, "
+        f"UIO-sensors {bg['uio_sensors']['max_spectral_radius']:.4f} at {bg['uio_sensors']['at_kmh']:.1f} km/h",
+        f"UIHOSMO on the sensors: reconstruction outputs {'+'.join(us['outputs'])}, pre-observer "
+        f"{'+'.join(us['observed'])}, unknown inputs {us['unknown_inputs']}; zero dynamics stable above "
+        f"{us['detectability_floor_kmh']:.1f} km/h, valid above {us['min_valid_speed_kmh']:.1f} km/h",
         f"LMI feasible: {lmi['feasible']}, slack {lmi['slack']:.3g}, ||D^T P - T C|| {lmi['residual']:.3g}",
         "STABLE at and between every grid speed" if result["stable"] else "NOT STABLE: see the rows above",
     ]

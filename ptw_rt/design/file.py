@@ -19,7 +19,7 @@ import numpy as np
 from ptw_rt.errors import UserFacingError
 from ptw_rt.untrusted import excerpt, open_binary, short_text
 
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -74,6 +74,25 @@ class DesignData:
     kf_C: np.ndarray  # (5, 9)
     kf_Gd: np.ndarray  # (G, 9, 4) exact ZOH of the nonlinear correction forces (lateral, yaw, roll, steer rows)
     kf_nonlinear: np.ndarray  # (7,) vehicle constants of the nonlinear correction (core.kalman NL_*)
+    # UIHOSMO on the real sensors (issue #16; design.uio_sensors, runtime core.uio_sensors), reduced state as uh_*
+    us_outputs: np.ndarray  # (m,) int, core.uio_sensors M_* codes of the reconstruction outputs
+    us_observed: np.ndarray  # (p,) int, M_* codes of the pre-observer's outputs (us_outputs first)
+    us_degrees: np.ndarray  # (m,) int, relative degree of each reconstruction output
+    us_roll_input: int  # 1: unknown input tau, roll measured (an input); 0: unknown inputs [phi, tau]
+    us_lipschitz: np.ndarray  # (m,) differentiator constant L per reconstruction output
+    us_min_valid_speed: float  # [m/s] the stage is held in reset below
+    us_detectability_floor: float  # [m/s] zero dynamics stable above
+    us_mass: float  # [kg] initial tyre forces from a_y
+    us_C: np.ndarray  # (p, 7)
+    us_Phi: np.ndarray  # (G, 7, 7) exact ZOH of A - L C
+    us_Gamma: np.ndarray  # (G, 7, p + 5) ZOH of the inputs [y, roll, d]
+    us_Ramp: np.ndarray  # (G, 7, p + 5) first-order hold of the same
+    us_T_inv: np.ndarray  # (G, 7, 7)
+    us_Abar: np.ndarray  # (G, m, 7)
+    us_Dbar_inv: np.ndarray  # (G, m, m)
+    us_Phi22: np.ndarray  # (G, n2, n2)
+    us_Gamma21: np.ndarray  # (G, n2, n1)
+    us_Ramp21: np.ndarray  # (G, n2, n1)
 
     def save(self, path: str | Path) -> None:
         path = Path(path)
@@ -86,7 +105,7 @@ class DesignData:
 
 
 # Bounds of what a design file may hold, checked from the zip directory and each member's .npy header BEFORE
-# anything is decompressed (a few-MB "zip bomb" .npz can declare gigabytes). Today's file: 39 members,
+# anything is decompressed (a few-MB "zip bomb" .npz can declare gigabytes). Format 6's file: 39 members,
 # 174 kB on disk, 217 kB uncompressed, at most 3 dimensions.
 MAX_DESIGN_BYTES = 16 << 20  # on disk
 MAX_DESIGN_UNCOMPRESSED = 64 << 20  # sum of the members' declared sizes
@@ -117,6 +136,15 @@ _GRID_INDEXED = frozenset(
         "kf_Phi",
         "kf_K",
         "kf_Gd",
+        "us_Phi",
+        "us_Gamma",
+        "us_Ramp",
+        "us_T_inv",
+        "us_Abar",
+        "us_Dbar_inv",
+        "us_Phi22",
+        "us_Gamma21",
+        "us_Ramp21",
     }
 )
 
