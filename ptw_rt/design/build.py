@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ptw_rt.design import kalman, uio_sensors
+from ptw_rt.design import kalman, tyre_bank, uio_sensors
 from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
 from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
@@ -61,6 +61,7 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
     ad_B = np.array(ad_B)
     nominal = np.array(p.nominal_stiffness())
     kf_Phi, kf_K, kf_Gd = kalman.design_grid(p, grid, dt, est.kalman)
+    bank = tyre_bank.design_bank(p, grid, dt, est.kalman, est.tyre_bank)
     us = uio_sensors.design_grid(
         p,
         grid,
@@ -120,6 +121,7 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         kf_C=kalman.output_matrix(p),
         kf_Gd=kf_Gd,
         kf_nonlinear=kalman.nonlinear_constants(p),
+        **bank,
         **uio_sensors.design_fields(p, us, est.min_valid_speed_kmh / 3.6),
     )
     return data, {"lmi_solution": sol, "uihosmo": uh, "uio_sensors": us}
@@ -182,8 +184,16 @@ def check_design(data: DesignData) -> dict[str, Any]:
             "samples_per_interval": BETWEEN_GRID_SAMPLES,
         },
     }
+    tb_grid, tb_between = tyre_bank.bank_spectral_radii(data, grid, BETWEEN_GRID_SAMPLES)
+    result["tyre_bank"] = {
+        "scales": [round(float(k), 4) for k in data.tb_scale],
+        "max_spectral_radius": tb_grid,
+        "between_grid_max_spectral_radius": tb_between,
+    }
     result["stable"] = bool(
-        feasible
+        tb_grid < 1.0
+        and tb_between < 1.0
+        and feasible
         and max(uh_rho) < 1.0
         and max(ad_rho) < 1.0
         and max(kf_rho) < 1.0
@@ -223,6 +233,10 @@ def format_check(result: dict[str, Any]) -> str:
         f"UIHOSMO on the sensors: reconstruction outputs {'+'.join(us['outputs'])}, pre-observer "
         f"{'+'.join(us['observed'])}, unknown inputs {us['unknown_inputs']}; zero dynamics stable above "
         f"{us['detectability_floor_kmh']:.1f} km/h, valid above {us['min_valid_speed_kmh']:.1f} km/h",
+        f"tyre bank: {len(result['tyre_bank']['scales'])} fusion filters for tyres x "
+        f"{result['tyre_bank']['scales'][0]:g}..{result['tyre_bank']['scales'][-1]:g}: max rho "
+        f"{result['tyre_bank']['max_spectral_radius']:.4f} at grid speeds, "
+        f"{result['tyre_bank']['between_grid_max_spectral_radius']:.4f} between them",
         f"LMI feasible: {lmi['feasible']}, slack {lmi['slack']:.3g}, ||D^T P - T C|| {lmi['residual']:.3g}",
         "STABLE at and between every grid speed" if result["stable"] else "NOT STABLE: see the rows above",
     ]

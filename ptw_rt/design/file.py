@@ -19,7 +19,7 @@ import numpy as np
 from ptw_rt.errors import UserFacingError
 from ptw_rt.untrusted import excerpt, open_binary, short_text
 
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -74,6 +74,13 @@ class DesignData:
     kf_C: np.ndarray  # (5, 9)
     kf_Gd: np.ndarray  # (G, 9, 4) exact ZOH of the nonlinear correction forces (lateral, yaw, roll, steer rows)
     kf_nonlinear: np.ndarray  # (7,) vehicle constants of the nonlinear correction (core.kalman NL_*)
+    # the tyre bank (design/tyre_bank.py): H hypotheses x G grid speeds, hypothesis-major rows
+    tb_scale: np.ndarray  # (H,) tyre scale of each hypothesis
+    tb_Phi: np.ndarray  # (H*G, 9, 9)
+    tb_K: np.ndarray  # (H*G, 9, 5)
+    tb_Gd: np.ndarray  # (H*G, 9, 4)
+    tb_Sinv: np.ndarray  # (H*G, 5, 5) inverse innovation covariance
+    tb_logdet: np.ndarray  # (H*G, 1, 1) log det of the innovation covariance
     # UIHOSMO on the real sensors (issue #16; design.uio_sensors, runtime core.uio_sensors), reduced state as uh_*
     us_outputs: np.ndarray  # (m,) int, core.uio_sensors M_* codes of the reconstruction outputs
     us_observed: np.ndarray  # (p,) int, M_* codes of the pre-observer's outputs (us_outputs first)
