@@ -115,6 +115,11 @@ PERTURB_KEYS = {
     "imu_bias": "factor on the IMU per-run bias (gyro 0.003 rad/s, accel 0.05 m/s^2 rms)",
     "steer_offset": "steering encoder calibration offset in counts (straight ahead reads 512 + offset)",
     "rider_noise": "factor on the rider's torque noise and line wander",
+    # sensor faults the sensors' own checks cannot see (counters, ranges and timing stay right), from fault_at on
+    "fault_at": "s into the ride at which the faults below appear (0: from the start)",
+    "yaw_gyro_scale": "factor on the yaw-rate gyro's reading (a scale error)",
+    "roll_gyro_bias_step": "rad/s added to the roll-rate gyro's reading (a bias step)",
+    "steer_offset_step": "counts added to the steering encoder's reading (a slipped encoder)",
 }
 
 
@@ -129,6 +134,10 @@ class Perturbation:
     imu_bias: float = 1.0
     steer_offset: float = 0.0
     rider_noise: float = 1.0
+    fault_at: float = 0.0
+    yaw_gyro_scale: float = 1.0
+    roll_gyro_bias_step: float = 0.0
+    steer_offset_step: float = 0.0
 
     def as_dict(self) -> dict[str, float | None]:
         return {k: getattr(self, k) for k in PERTURB_KEYS}
@@ -159,8 +168,14 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
             raise UserFacingError(f"--perturb {item!r}: {key} is a factor, expected 0 .. 100")
         if key == "added_mass" and not -150.0 <= value <= 300.0:
             raise UserFacingError(f"--perturb {item!r}: added_mass must be within -150 .. 300 kg")
-        if key == "steer_offset" and not (-100 <= value <= 100 and value == int(value)):
-            raise UserFacingError(f"--perturb {item!r}: steer_offset is an integer number of counts, |.| <= 100")
+        if key == "fault_at" and not 0.0 <= value <= 3600.0:
+            raise UserFacingError(f"--perturb {item!r}: fault_at must be within 0 .. 3600 s")
+        if key == "yaw_gyro_scale" and not 0.2 <= value <= 5.0:
+            raise UserFacingError(f"--perturb {item!r}: yaw_gyro_scale is a factor, expected 0.2 .. 5")
+        if key == "roll_gyro_bias_step" and not abs(value) <= 1.0:
+            raise UserFacingError(f"--perturb {item!r}: roll_gyro_bias_step must be within -1 .. 1 rad/s")
+        if key in ("steer_offset", "steer_offset_step") and not (-100 <= value <= 100 and value == int(value)):
+            raise UserFacingError(f"--perturb {item!r}: {key} is an integer number of counts, |.| <= 100")
         values[key] = value
     return Perturbation(**values)
 

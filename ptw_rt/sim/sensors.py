@@ -220,12 +220,20 @@ def make_sensor_streams(
         sig = {}
         for j, k in enumerate(keys):
             sig[k] = clean[k] + bias[j] + rng.standard_normal(len(tt)) * sigma * pert.imu_noise
+        if name == "IMU_Rates":  # faults no plausibility check can see, from fault_at on
+            after = tt >= pert.fault_at
+            sig["YawRate"] = np.where(
+                after, sig["YawRate"] + (pert.yaw_gyro_scale - 1.0) * clean["YawRate"], sig["YawRate"]
+            )
+            sig["RollRate"] = sig["RollRate"] + np.where(after, pert.roll_gyro_bias_step, 0.0)
         streams[name] = MessageStream(name, tt, sig, _counters(len(tt), starts[name]))
 
     # --- steering encoder
     tt = frame_times(rng, cfg.steer_period, phases["Steer_Encoder"], cfg.jitter["Steer_Encoder"], duration)
     delta = _sample(rec, X + DELTA, np.maximum(tt - cfg.steer_delay, 0.0))
     counts = steer_counts(delta, cfg.steer_zero, int(pert.steer_offset), cfg.counts_per_rev)
+    if pert.steer_offset_step:
+        counts = np.where(tt >= pert.fault_at, (counts + int(pert.steer_offset_step)) % cfg.counts_per_rev, counts)
     streams["Steer_Encoder"] = MessageStream(
         "Steer_Encoder", tt, {"SteerCount": counts.astype(float)}, _counters(len(tt), starts["Steer_Encoder"])
     )
