@@ -60,3 +60,36 @@ def _remove_other_versions(base: Path, keep: str) -> None:
                     shutil.rmtree(entry, ignore_errors=True)
             except OSError:
                 pass
+
+
+def is_cold(module: str = "estimator") -> bool:
+    """True when the jitted functions of ``ptw_rt/core/<module>.py`` have no cached machine code for this version
+    of the source (the first run after an install or an upgrade: compiling takes about 20 s). False when the
+    cache cannot be known or numba's JIT is off (nothing to compile)."""
+    try:
+        if os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0"):
+            return False
+        base = os.environ.get(_ENV)
+        if not base:
+            return False
+        return not any(Path(base).glob(f"*/{module}.*.nbi"))
+    except Exception:  # noqa: BLE001 - never fail over a cache
+        return False
+
+
+COMPILING_NOTE = "compiling the estimator, about 20 s, once (numba cache: {cache})"
+
+
+def announce_compile(stream=None) -> bool:
+    """Print the one line a user waiting on a cold cache needs (stderr); True if printed."""
+    import sys
+
+    if not is_cold():
+        return False
+    stream = stream if stream is not None else sys.stderr
+    try:
+        stream.write(COMPILING_NOTE.format(cache=os.environ.get(_ENV, "?")) + "\n")
+        stream.flush()
+    except (OSError, ValueError):
+        return False
+    return True

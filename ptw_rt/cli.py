@@ -23,6 +23,7 @@ EXTRA_OF_MODULE = {
     "scs": "design",
     "matplotlib": "plot",
     "pynmea2": "gnss",
+    "asammdf": "mf4",
 }
 
 
@@ -233,17 +234,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "replay",
-        help="offline replay of candump logs through the same cycle as the daemon",
+        help="offline replay of CAN logs (candump, ASC, BLF, TRC, CSV, MF4) through the same cycle as the daemon",
+        description="Input format from the extension and the content; output format from --out's extension "
+        "(.log or none: candump -L; .asc, .blf, .trc, .csv, .mf4). Exit code 2: not a CAN log, empty, unreadable.",
     )
-    p.add_argument("logs", nargs="+", type=Path, help="candump -L logs or directories of them")
-    p.add_argument("--out", type=Path, required=True, help="output log (one input) or directory (several)")
+    p.add_argument("logs", nargs="+", type=Path, help="CAN logs or directories of them")
+    p.add_argument(
+        "--out", type=Path, required=True, help="output log (one input; format from its extension) or directory"
+    )
     p.add_argument("--csv", type=Path, default=None, help="also write the decoded estimates as CSV (file or dir)")
     p.add_argument(
         "--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML (default: %(default)s)"
     )
     p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
     p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (several logs)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines on stderr")
     p.set_defaults(handler=_replay)
 
     p = sub.add_parser(

@@ -32,6 +32,7 @@ import numpy as np
 
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table
 from ptw_rt.paths import DEFAULT_CONFIG
+from ptw_rt.progress import Progress  # noqa: F401 - moved to the plumbing layer; used below
 
 VARIANTS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("nominal", ()),
@@ -294,35 +295,6 @@ def run_wrong_start(job: tuple) -> dict:
     if applied:
         out["convergence"] = learning_times(evaluation, 0.0)
     return out
-
-
-class Progress:
-    """A progress bar on stderr when it is a terminal; otherwise a plain line every `every` seconds."""
-
-    def __init__(self, total: int, label: str = "matrix", stream=None, every: float = 10.0) -> None:
-        self.total, self.label, self.done = total, label, 0
-        self.stream = stream if stream is not None else sys.stderr
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.every = every
-        self.t0 = time.perf_counter()
-        self._last = -math.inf
-
-    def step(self, what: str = "") -> None:
-        self.done += 1
-        elapsed = time.perf_counter() - self.t0
-        if self.tty:
-            width = 30
-            fill = int(round(width * self.done / max(self.total, 1)))
-            self.stream.write(
-                f"\r{self.label} [{'#' * fill}{'.' * (width - fill)}] {self.done}/{self.total} "
-                f"{elapsed:5.0f} s {what[:32]:<32}"
-            )
-            if self.done >= self.total:
-                self.stream.write("\n")
-        elif self.done >= self.total or elapsed - self._last >= self.every:
-            self._last = elapsed
-            self.stream.write(f"{self.label}: {self.done}/{self.total} done, {elapsed:.0f} s ({what})\n")
-        self.stream.flush()
 
 
 def _map(fn: Callable, jobs: list, workers: int | None, progress: Progress | None, name: Callable) -> list:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, NamedTuple
@@ -46,6 +46,8 @@ __all__ = [
     "MAX_LOG_BYTES",
     "MAX_TIMESTAMP",
     "REJECT_REASONS",
+    "Problem",
+    "TimeRule",
     "BadTimestampError",
     "CandumpFileError",
     "CandumpReader",
@@ -54,6 +56,8 @@ __all__ = [
     "format_line",
     "parse_line",
     "read_log",
+    "text_blocks",
+    "timestamp_problem",
 ]
 
 log = logging.getLogger(__name__)
@@ -89,6 +93,27 @@ class LogFrame(NamedTuple):
     line_no: int
     is_extended: bool = False
     is_remote: bool = False
+
+
+class Problem(NamedTuple):
+    """A record of a log that is skipped: where, why (``reason``), an excerpt, the ``REJECT_REASONS`` kind."""
+
+    line_no: int
+    reason: str
+    line: str = ""
+    kind: str = "malformed"
+
+
+def timestamp_problem(timestamp: float) -> str | None:
+    """Why a time stamp read as a number (not as candump text) is absurd, or None: the bound ``parse_line``
+    applies to candump's digits (finite, not negative, not after 2200), for every other format."""
+    if not math.isfinite(timestamp):
+        return f"time stamp {timestamp!r} is not finite"
+    if timestamp < 0.0:
+        return f"negative time stamp {timestamp:.6f}"
+    if timestamp > MAX_TIMESTAMP:
+        return f"time stamp {timestamp:.6g} after 2200-01-01"
+    return None
 
 
 def format_line(timestamp: float, channel: str, frame_id: int, data: bytes, *, extended: bool | None = None) -> str:
@@ -219,42 +244,65 @@ class CandumpWriter:
         self.close()
 
 
-class CandumpReader(Iterator[LogFrame]):
-    """Iterator over the frames of a candump ``-L`` log; skips and counts bad lines (module docstring: the rules).
+def text_blocks(read: Callable[[], str], max_chars: int = MAX_LINE_CHARS) -> Iterator[list[str]]:
+    """Lists of lines (no newline) from ``read()`` (chunks of text, "" at the end); a line longer than
+    ``max_chars`` is never held whole: it comes as one line of ``max_chars + 1`` characters, which the parser
+    rejects (``too_long``). Used by every text log format."""
+    rest = ""
+    skipping = False  # inside an over-long line: drop up to its newline
+    while True:
+        chunk = read()
+        if not chunk:
+            break
+        cut = chunk.rfind("\n")
+        if cut < 0:  # no line ends in this chunk
+            if not skipping:
+                rest += chunk
+                if len(rest) > max_chars:
+                    rest, skipping = rest[: max_chars + 1], True
+            continue
+        lines = chunk[:cut].split("\n")
+        if skipping:
+            lines[0] = rest  # the tail of the over-long line is dropped; the line itself counts once
+            skipping = False
+        elif rest:
+            lines[0] = rest + lines[0]
+        rest = chunk[cut + 1 :]
+        if len(rest) > max_chars:
+            rest, skipping = rest[: max_chars + 1], True
+        yield lines
+    if rest:
+        yield [rest]
 
-    After (or during) iteration: ``frames`` (good frames yielded), ``malformed`` (lines skipped, every reason),
+
+class TimeRule(Iterator[LogFrame]):
+    """The time rule of the module docstring, for the frames of any log format, with the counts of what it
+    skipped. A subclass supplies ``_items()``: the log's records in file order, each a ``LogFrame`` (with
+    ``line_no`` = the line or record number) or a ``Problem`` (a record that could not be read).
+
+    After (or during) iteration: ``frames`` (good frames yielded), ``malformed`` (records skipped, every reason),
     ``rejected`` (reason -> count, reasons of ``REJECT_REASONS``), ``reordered`` (accepted frames stamped
     slightly before an earlier one), ``discontinuities`` (count) and ``discontinuity_lines`` ((line_no, from,
     to) of each confirmed time-base change), ``malformed_lines`` and ``problems`` ((line_no, reason) pairs; the
     first ``MAX_RECORDED`` of each). A warning naming the file and line is logged for the first
-    ``max_warnings`` bad lines, then one summary warning at the end.
+    ``max_warnings`` bad records, then one summary warning at the end (``max_warnings=None``: none, the caller
+    summarises with ``examples``, the first three bad records escaped).
     """
+
+    unit = "line"  # what a record is called in warnings: "candump line", "ASC line", "BLF object", ...
 
     def __init__(
         self,
-        source: str | Path | IO[str],
+        name: str,
         *,
-        max_warnings: int = 20,
+        max_warnings: int | None = 20,
         max_jump: float = 1.0,
         reorder_tolerance: float = 0.02,
         confirm: int = 8,
-        max_bytes: int = MAX_LOG_BYTES,
     ) -> None:
-        self._fh: IO[bytes] | None = None
-        if isinstance(source, (str, Path)):
-            path = Path(source)
-            self.name = str(path)
-            try:
-                self._fh = open_binary(path, max_bytes=max_bytes, what="candump log", error=CandumpFileError)
-            except CandumpFileError as exc:
-                if str(exc).endswith("not found"):
-                    raise FileNotFoundError(f"candump log not found: {path}") from None
-                raise
-            self._stream: IO[str] | None = None
-        else:
-            self.name = getattr(source, "name", "<stream>")
-            self._stream = source
-        self.max_warnings = max_warnings
+        self.name = name
+        self._quiet = max_warnings is None  # None: no warning per bad record (the caller summarises: ``examples``)
+        self.max_warnings = 0 if max_warnings is None else max_warnings
         self.max_jump = float(max_jump)
         self.reorder_tolerance = float(reorder_tolerance)
         self.confirm = max(1, int(confirm))
@@ -266,108 +314,59 @@ class CandumpReader(Iterator[LogFrame]):
         self.discontinuity_lines: list[tuple[int, float, float]] = []
         self.malformed_lines: list[int] = []
         self.problems: list[tuple[int, str]] = []
+        self.examples: list[str] = []  # the first few bad records, escaped (``ascii``), for a summary
         self._last: float | None = None  # newest stamp of the accepted time base (None: none confirmed yet)
         self._chains: list[list] = []  # candidate time bases: [frames, newest stamp]
         self._base_votes = 0  # frames accepted on the base since the oldest pending candidate started
         self._gen = self._generate()
 
-    # ------------------------------------------------------------------ lines
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        raise NotImplementedError
 
-    def _blocks(self) -> Iterator[list[str]]:
-        """Lists of lines (no newline), read in large chunks; a line longer than ``MAX_LINE_CHARS`` is never
-        held whole: it comes as one line of ``MAX_LINE_CHARS + 1`` characters, which the parser rejects."""
-        if self._fh is not None:
-            fh = self._fh
-
-            def read() -> str:
-                return fh.read(_READ_CHUNK).decode("utf-8", "replace")  # may split a character: a bad line anyway
-
-        else:
-            assert self._stream is not None
-            stream = self._stream
-
-            def read() -> str:
-                return stream.read(_READ_CHUNK)
-
-        rest = ""
-        skipping = False  # inside an over-long line: drop up to its newline
-        while True:
-            chunk = read()
-            if not chunk:
-                break
-            cut = chunk.rfind("\n")
-            if cut < 0:  # no line ends in this chunk
-                if not skipping:
-                    rest += chunk
-                    if len(rest) > MAX_LINE_CHARS:
-                        rest, skipping = rest[: MAX_LINE_CHARS + 1], True
-                continue
-            lines = chunk[:cut].split("\n")
-            if skipping:
-                lines[0] = rest  # the tail of the over-long line is dropped; the line itself counts once
-                skipping = False
-            elif rest:
-                lines[0] = rest + lines[0]
-            rest = chunk[cut + 1 :]
-            if len(rest) > MAX_LINE_CHARS:
-                rest, skipping = rest[: MAX_LINE_CHARS + 1], True
-            yield lines
-        if rest:
-            yield [rest]
+    def _release(self) -> None:
+        """Close what the reader opened (called once the records are read, or on ``close``)."""
 
     def _generate(self) -> Iterator[LogFrame]:
         try:
-            yield from self._parse(self._blocks())
+            yield from self._rule(self._items())
         finally:
-            if self._fh is not None:
-                self._fh.close()
+            self._release()
 
-    # ------------------------------------------------------------------ frames
-
-    def _parse(self, blocks: Iterator[list[str]]) -> Iterator[LogFrame]:
+    def _rule(self, items: Iterator[LogFrame | Problem]) -> Iterator[LogFrame]:
+        """The time rule over a log's records (``TimeRule``'s module docstring), with the fast path inlined."""
         tol = self.reorder_tolerance
         jump = self.max_jump
         suspect = self._suspect
-        line_no = 0
+        bad = self._bad
         last = self._last
-        for block in blocks:
-            for line in block:
-                line_no += 1
-                if len(line) > MAX_LINE_CHARS:
-                    self._bad(line_no, f"line longer than {MAX_LINE_CHARS} characters", line, "too_long")
+        for frame in items:
+            if frame.__class__ is Problem:
+                bad(*frame)
+                continue
+            if last is not None and not self._chains:  # the fast path: no candidate pending
+                d = frame.timestamp - last
+                if 0.0 <= d <= jump:
+                    last = frame.timestamp
+                    self.frames += 1
+                    yield frame
                     continue
-                try:
-                    frame = parse_line(line, line_no)
-                except BadTimestampError as exc:
-                    self._bad(line_no, str(exc), line, "bad_timestamp")
+                if -tol <= d < 0.0:
+                    self.reordered += 1
+                    self.frames += 1
+                    yield frame
                     continue
-                except ValueError as exc:
-                    self._bad(line_no, str(exc), line, "malformed")
-                    continue
-                if last is not None and not self._chains:  # the fast path: no candidate pending
-                    d = frame.timestamp - last
-                    if 0.0 <= d <= jump:
-                        last = frame.timestamp
-                        self.frames += 1
-                        yield frame
-                        continue
-                    if -tol <= d < 0.0:
-                        self.reordered += 1
-                        self.frames += 1
-                        yield frame
-                        continue
-                self._last = last
-                out = suspect(frame)
-                last = self._last
-                if out:
-                    self.frames += len(out)
-                    yield from out
+            self._last = last
+            out = suspect(frame)
+            last = self._last
+            if out:
+                self.frames += len(out)
+                yield from out
         out = self._finish()
         self.frames += len(out)
         yield from out
         hidden = self.malformed - self.max_warnings
-        if hidden > 0:
-            log.warning("%s: %d more bad candump lines skipped (%d in total)", self.name, hidden, self.malformed)
+        if hidden > 0 and not self._quiet:
+            log.warning("%s: %d more bad %ss skipped (%d in total)", self.name, hidden, self.unit, self.malformed)
         if self.discontinuities > self.max_warnings:
             log.warning("%s: %d discontinuities of the time stamps in total", self.name, self.discontinuities)
 
@@ -466,13 +465,17 @@ class CandumpReader(Iterator[LogFrame]):
         if len(self.problems) < MAX_RECORDED:
             self.malformed_lines.append(line_no)
             self.problems.append((line_no, reason))
-        if self.malformed <= self.max_warnings:
+        if self.malformed <= self.max_warnings and not self._quiet:
             if line:
-                log.warning("%s:%d: skipping candump line (%s): %.80r", self.name, line_no, reason, line.rstrip())
+                log.warning("%s:%d: skipping %s (%s): %.80a", self.name, line_no, self.unit, reason, line.rstrip())
             else:
-                log.warning("%s:%d: skipping candump line (%s)", self.name, line_no, reason)
+                log.warning("%s:%d: skipping %s (%s)", self.name, line_no, self.unit, reason)
+        if len(self.examples) < 3:
+            self.examples.append(
+                f"{self.name}:{line_no}: {reason}" + (f": {ascii(line.rstrip()[:60])}" if line else "")
+            )
 
-    def __iter__(self) -> CandumpReader:
+    def __iter__(self) -> TimeRule:
         return self
 
     def __next__(self) -> LogFrame:
@@ -481,16 +484,99 @@ class CandumpReader(Iterator[LogFrame]):
     def close(self) -> None:
         """Stop reading and close the file (if opened here)."""
         self._gen.close()
-        if self._fh is not None:
-            self._fh.close()
+        self._release()
 
-    def __enter__(self) -> CandumpReader:
+    def __enter__(self) -> TimeRule:
         return self
 
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+class CandumpReader(TimeRule):
+    """Iterator over the frames of a candump ``-L`` log; skips and counts bad lines (module docstring: the rules;
+    ``TimeRule``: the counts).
+    """
+
+    unit = "candump line"
+
+    def __init__(
+        self,
+        source: str | Path | IO[str],
+        *,
+        max_warnings: int = 20,
+        max_jump: float = 1.0,
+        reorder_tolerance: float = 0.02,
+        confirm: int = 8,
+        max_bytes: int = MAX_LOG_BYTES,
+    ) -> None:
+        self._fh: IO[bytes] | None = None
+        if isinstance(source, (str, Path)):
+            path = Path(source)
+            name = str(path)
+            try:
+                self._fh = open_binary(path, max_bytes=max_bytes, what="candump log", error=CandumpFileError)
+            except CandumpFileError as exc:
+                if str(exc).endswith("not found"):
+                    raise FileNotFoundError(f"candump log not found: {path}") from None
+                raise
+            self._stream: IO[str] | None = None
+        else:
+            name = getattr(source, "name", "<stream>")
+            self._stream = source
+        super().__init__(
+            name, max_warnings=max_warnings, max_jump=max_jump, reorder_tolerance=reorder_tolerance, confirm=confirm
+        )
+
+    @property
+    def position(self) -> int:
+        """Bytes read so far (0 for a stream): for a progress bar."""
+        try:
+            return self._fh.tell() if self._fh is not None and not self._fh.closed else 0
+        except (OSError, ValueError):
+            return 0
+
+    def _release(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+
+    # ------------------------------------------------------------------ lines
+
+    def _blocks(self) -> Iterator[list[str]]:
+        if self._fh is not None:
+            fh = self._fh
+
+            def read() -> str:
+                return fh.read(_READ_CHUNK).decode("utf-8", "replace")  # may split a character: a bad line anyway
+
+        else:
+            assert self._stream is not None
+            stream = self._stream
+
+            def read() -> str:
+                return stream.read(_READ_CHUNK)
+
+        return text_blocks(read)
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        line_no = 0
+        for block in self._blocks():
+            for line in block:
+                line_no += 1
+                if len(line) > MAX_LINE_CHARS:
+                    yield Problem(line_no, f"line longer than {MAX_LINE_CHARS} characters", line, "too_long")
+                    continue
+                try:
+                    yield parse_line(line, line_no)
+                except BadTimestampError as exc:
+                    yield Problem(line_no, str(exc), line, "bad_timestamp")
+                except ValueError as exc:
+                    yield Problem(line_no, str(exc), line, "malformed")
+
+    def __enter__(self) -> CandumpReader:
+        return self
 
 
 def read_log(source: str | Path | IO[str], *, max_warnings: int = 20, **rules: Any) -> CandumpReader:

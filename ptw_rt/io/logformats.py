@@ -1,0 +1,917 @@
+"""Every CAN log format python-can reads, in and out: candump ``-L``, ASC, BLF, TRC, CSV and MF4 (ASAM MDF 4).
+
+    open_log(path)            -> (iterator of (timestamp, id, data, extended), LogStats)
+    open_writer(path, ...)    -> a writer of the format the extension names (candump: our own, byte-identical)
+
+The format comes from the extension (``.log`` candump, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.mf4``/``.mdf``)
+and is confirmed by the content: the first ``SNIFF_BYTES`` are searched for a frame (or the signature, for the
+binary formats) of every format. A file whose extension is missing, unknown or wrong (``.log`` is also what
+many other tools write) is read as the format its content shows. A file showing none is ``NotACanLogError``
+(one line, exit code 2 in the CLI); an empty file, or a log without a single frame, is ``EmptyLogError``.
+
+Every log is untrusted data, read within bounds like ``ptw_rt.io.candump`` (whose time rule every format shares:
+``TimeRule``, one implementation, and ``timestamp_problem`` for stamps read as numbers):
+
+* text formats (candump, ASC, TRC, CSV) are read in 1 MiB chunks, a line longer than ``MAX_TEXT_LINE`` is skipped
+  without being held (``text_blocks``); a line python-can cannot parse is counted and skipped, the next line is
+  read (python-can's own readers stop at the first one: here its per-line parsers are called line by line);
+* BLF is parsed here (python-can's ``BLFReader`` reads an object of any declared size, a negative size as "the
+  rest of the file", decompresses a container without limit and keeps an unfinished object across containers
+  without limit, and raises ``struct.error`` on a truncated file): objects and containers at most ``MAX_BLF_OBJECT``
+  bytes, compressed or not; garbage between objects is skipped to the next ``LOBJ`` signature and counted;
+* MF4 goes through python-can's ``MF4Reader`` and ``asammdf`` (the ``mf4`` extra); the declared record counts are
+  checked against the file's size before anything is read, and any error of asammdf ends the log as counted.
+
+Frames that are not classic data frames (remote, error, CAN FD) are counted in ``LogStats.skipped`` by kind.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import gc
+import logging
+import math
+import re
+import struct
+import sys
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+from ptw_rt.errors import UserFacingError
+from ptw_rt.io.candump import (
+    MAX_LOG_BYTES,
+    CandumpFileError,
+    CandumpReader,
+    CandumpWriter,
+    LogFrame,
+    Problem,
+    TimeRule,
+    text_blocks,
+    timestamp_problem,
+)
+from ptw_rt.untrusted import open_binary
+
+__all__ = [
+    "EXTENSIONS",
+    "FORMATS",
+    "SNIFF_BYTES",
+    "EmptyLogError",
+    "LogFormatError",
+    "LogStats",
+    "NotACanLogError",
+    "detect_format",
+    "format_of_extension",
+    "open_log",
+    "open_writer",
+    "sniff",
+    "writer_format",
+]
+
+log = logging.getLogger(__name__)
+
+# format -> name in messages; in the order the sniffer tries them
+FORMATS = {"candump": "candump", "asc": "ASC", "blf": "BLF", "trc": "TRC", "csv": "CSV", "mf4": "MF4"}
+EXTENSIONS = {
+    ".log": "candump",
+    ".asc": "asc",
+    ".blf": "blf",
+    ".trc": "trc",
+    ".csv": "csv",
+    ".mf4": "mf4",
+    ".mdf": "mf4",
+}
+SNIFF_BYTES = 64 << 10
+MAX_TEXT_LINE = 1024  # ASC/TRC lines of CAN FD frames reach ~400 characters; ours are < 100
+MAX_BLF_OBJECT = 16 << 20  # an object, a container and a container's unpacked data (writers use 128 KiB)
+MAX_MF4_RATIO = 1100  # deflate expands at most ~1032x: more records than this allows are a lie
+_READ_CHUNK = 1 << 20
+_EXAMPLES = 3
+_STD_MAX = 0x7FF
+
+
+class LogFormatError(UserFacingError):
+    """A log that cannot be read at all (one line; exit code 2 in the CLI)."""
+
+
+class NotACanLogError(LogFormatError):
+    """No frame of any supported format in the first ``SNIFF_BYTES``."""
+
+
+class EmptyLogError(LogFormatError):
+    """An empty file, or a log without a single CAN frame."""
+
+
+def format_of_extension(path: str | Path) -> str | None:
+    """The format an extension names, None for none or an unknown one."""
+    return EXTENSIONS.get(Path(path).suffix.lower())
+
+
+# ---------------------------------------------------------------------- sniffing
+
+_CANDUMP_RE = re.compile(rb"^[ \t]*\([0-9.]+\)[ \t]+\S+[ \t]+[0-9A-Fa-f]+#", re.M)
+_ASC_FRAME_RE = re.compile(rb"^[ \t]*\d+\.\d+[ \t]+(\d+[ \t]+(\w+x?[ \t]+(Tx|Rx)|ErrorFrame)|CANFD[ \t])", re.M | re.I)
+_ASC_HEAD_RE = re.compile(rb"^[ \t]*(date[ \t]+\w+|base[ \t]+(hex|dec)|begin[ \t]+triggerblock)", re.M | re.I)
+_TRC_FRAME_RE = re.compile(
+    rb"^[ \t]*\d+\)?[ \t]+\d+(\.\d+)?[ \t]+"
+    rb"((DT|FD|FB|FE|BI|RR)[ \t]|(Rx|Tx)[ \t]+[0-9A-Fa-f]+[ \t]|[0-9A-Fa-f]{4,8}[ \t]+\d)",
+    re.M,
+)
+_TRC_HEAD_RE = re.compile(rb"^;\$FILEVERSION=", re.M)
+_CSV_FRAME_RE = re.compile(rb"^\d+(\.\d*)?,(0x)?[0-9A-Fa-f]+,[01],[01],[01],\d+,[A-Za-z0-9+/=]*\r?$", re.M)
+_CSV_HEAD = b"timestamp,arbitration_id,extended,remote,error,dlc,data"
+
+
+def sniff(head: bytes) -> tuple[list[str], list[str]]:
+    """The formats the first bytes of a file show: (those with a frame or a binary signature, those with only
+    a header of theirs), each in ``FORMATS`` order."""
+    framed: list[str] = []
+    headed: list[str] = []
+    if head[:4] == b"LOGG":
+        framed.append("blf")
+    if head[:8] in (b"MDF     ", b"UnFinMF ") and head[8:10] == b"4.":
+        framed.append("mf4")
+    if framed:
+        return framed, headed
+    for fmt, frame_re, head_test in (
+        ("candump", _CANDUMP_RE, None),
+        ("asc", _ASC_FRAME_RE, lambda h: _ASC_HEAD_RE.search(h) is not None),
+        ("trc", _TRC_FRAME_RE, lambda h: _TRC_HEAD_RE.search(h) is not None),
+        ("csv", _CSV_FRAME_RE, lambda h: h.lstrip().startswith(_CSV_HEAD)),
+    ):
+        if frame_re.search(head):
+            framed.append(fmt)
+        elif head_test is not None and head_test(head):
+            headed.append(fmt)
+    return framed, headed
+
+
+def detect_format(path: str | Path, max_bytes: int = MAX_LOG_BYTES, *, warn: bool = False) -> tuple[str, int]:
+    """(format, size in bytes) of the log at ``path``: the extension's format if the content shows it, else the
+    format the content shows (``warn``: say so in a warning). Raises ``CandumpFileError`` (not a regular file,
+    too large, unreadable), ``EmptyLogError`` (0 bytes) or ``NotACanLogError``."""
+    with open_binary(path, max_bytes=max_bytes, what="CAN log", error=CandumpFileError) as fh:
+        head = fh.read(SNIFF_BYTES)
+        size = _size(fh)
+    if not head:
+        raise EmptyLogError(f"{path}: empty log (0 bytes)")
+    framed, headed = sniff(head)
+    by_ext = format_of_extension(path)
+    for found in (framed, headed):
+        if by_ext in found:
+            return by_ext, size
+        if found:
+            if by_ext is not None and warn:
+                log.warning(
+                    "%s: content is %s, not %s: read as %s", path, FORMATS[found[0]], FORMATS[by_ext], FORMATS[found[0]]
+                )
+            return found[0], size
+    names = "/".join(FORMATS.values())
+    raise NotACanLogError(f"{path}: not a CAN log (no {names} frame in the first {SNIFF_BYTES >> 10} KiB)")
+
+
+def _size(fh: IO[bytes]) -> int:
+    try:
+        import os
+
+        return os.fstat(fh.fileno()).st_size
+    except (OSError, ValueError):
+        return 0
+
+
+# ---------------------------------------------------------------------- stats
+
+
+class LogStats:
+    """What reading a log found: the time rule's counts (``reader``: ``frames``, ``malformed``, ``rejected``,
+    ``reordered``, ``discontinuities``, ``malformed_lines``, ``examples``), the frames skipped because they are
+    not classic data frames (``skipped``: kind -> count), the channel of the first frame and the progress."""
+
+    def __init__(self, path: Path, fmt: str, size: int, reader: TimeRule) -> None:
+        self.path = path
+        self.format = fmt
+        self.size = size
+        self.reader = reader
+        self.skipped: dict[str, int] = {}
+        self.channel: str | None = None
+
+    def __getattr__(self, name: str) -> Any:  # frames, malformed, rejected, ... of the time rule
+        if name.startswith("_") or name == "reader":
+            raise AttributeError(name)
+        return getattr(self.reader, name)
+
+    @property
+    def fraction(self) -> float:
+        """Share of the log read so far (0..1; by bytes, or records for MF4)."""
+        done = getattr(self.reader, "position", 0)
+        total = getattr(self.reader, "total", self.size)
+        return min(1.0, done / total) if total else 0.0
+
+    def skip(self, kind: str) -> None:
+        self.skipped[kind] = self.skipped.get(kind, 0) + 1
+
+    def problems_line(self) -> str | None:
+        """One line summarising the records skipped, with a few escaped examples; None if none were."""
+        r = self.reader
+        if not r.malformed:
+            return None
+        kinds = ", ".join(f"{k} {n}" for k, n in r.rejected.items() if n)
+        examples = "; ".join(r.examples[:_EXAMPLES])
+        return f"{self.path}: {r.malformed} {r.unit}s skipped ({kinds}); e.g. {examples}"
+
+    def no_frames_message(self) -> str:
+        """The one line for a log that gave no frame at all."""
+        r = self.reader
+        if r.malformed:
+            kinds = ", ".join(f"{k} {n}" for k, n in r.rejected.items() if n)
+            return f"{self.path}: no CAN frame could be read ({r.malformed} {r.unit}s skipped: {kinds})"
+        skipped = sum(self.skipped.values())
+        if skipped:
+            kinds = ", ".join(f"{k} {n}" for k, n in sorted(self.skipped.items()))
+            return f"{self.path}: no classic CAN data frame in the log ({FORMATS[self.format]}; skipped: {kinds})"
+        return f"{self.path}: empty log (no CAN frames in this {FORMATS[self.format]} file)"
+
+
+# ---------------------------------------------------------------------- readers
+
+
+def _frame(
+    timestamp: float, channel: Any, frame_id: int, data: bytes, record: int, extended: bool
+) -> LogFrame | Problem:
+    problem = timestamp_problem(timestamp)
+    if problem is not None:
+        return Problem(record, problem, "", "bad_timestamp")
+    if not 0 <= frame_id <= (0x1FFFFFFF if extended else _STD_MAX):
+        return Problem(record, f"{'29' if extended else '11'}-bit frame id {frame_id:#x} out of range", "", "malformed")
+    return LogFrame(timestamp, str(channel), frame_id, data, record, extended, False)
+
+
+class _MessageReader(TimeRule):
+    """Frames of a python-can ``Message`` source (or parsed here), through the shared time rule."""
+
+    def __init__(self, path: Path, max_bytes: int, **rules: Any) -> None:
+        self.path = path
+        self._fh = open_binary(path, max_bytes=max_bytes, what="CAN log", error=CandumpFileError)
+        self.skipped: dict[str, int] = {}
+        super().__init__(str(path), **rules)
+
+    @property
+    def position(self) -> int:
+        try:
+            return self._fh.tell() if not self._fh.closed else 0
+        except (OSError, ValueError):
+            return 0
+
+    def _release(self) -> None:
+        self._fh.close()
+
+    def _skip(self, kind: str) -> None:
+        self.skipped[kind] = self.skipped.get(kind, 0) + 1
+
+    def _message(self, msg: Any, record: int) -> LogFrame | Problem | None:
+        """A python-can Message as a frame; None for a remote, error or CAN FD frame (counted)."""
+        if msg.is_error_frame:
+            self._skip("error")
+            return None
+        if msg.is_remote_frame:
+            self._skip("remote")
+            return None
+        if msg.is_fd or len(msg.data) > 8:
+            self._skip("fd")
+            return None
+        ts = msg.timestamp
+        if not isinstance(ts, float):
+            try:
+                ts = float(ts)
+            except (TypeError, ValueError, OverflowError):
+                return Problem(record, f"bad time stamp {ts!r:.40}", "", "bad_timestamp")
+        return _frame(ts, msg.channel, int(msg.arbitration_id), bytes(msg.data), record, bool(msg.is_extended_id))
+
+    def _lines(self) -> Iterator[tuple[int, str]]:
+        """(line number, line) of a text log, bounded like candump's."""
+        fh = self._fh
+
+        def read() -> str:
+            return fh.read(_READ_CHUNK).decode("utf-8", "replace")
+
+        n = 0
+        for block in text_blocks(read, MAX_TEXT_LINE):
+            for line in block:
+                n += 1
+                yield n, line
+
+
+class _LineFeed:
+    """The lines of a text log as python-can's text readers iterate ``self.file``; remembers the last one."""
+
+    def __init__(self, lines: Iterator[tuple[int, str]]) -> None:
+        self._lines = lines
+        self.line_no = 0
+        self.line = ""
+        self.too_long: list[int] = []
+
+    def __iter__(self) -> _LineFeed:
+        return self
+
+    def __next__(self) -> str:
+        while True:
+            self.line_no, self.line = next(self._lines)
+            if len(self.line) <= MAX_TEXT_LINE:
+                return self.line + "\n"
+            self.too_long.append(self.line_no)  # python-can never sees it; reported by the caller
+
+    def close(self) -> None:
+        pass
+
+
+class _TextReader(_MessageReader):
+    """ASC and TRC: python-can's reader parses the header, then its per-line parser is called line by line (a
+    line it cannot parse is one skipped line, not the end of the log)."""
+
+    def _pycan(self, feed: _LineFeed) -> Any:
+        raise NotImplementedError
+
+    def _parse(self, reader: Any, line: str) -> Any:
+        raise NotImplementedError
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        feed = _LineFeed(self._lines())
+        too_long = f"line longer than {MAX_TEXT_LINE} characters"
+        try:
+            reader, first = self._pycan(feed)
+        except StopIteration:
+            return
+        except Exception as exc:  # noqa: BLE001 - python-can on untrusted content: any error is the file's
+            for n in feed.too_long:
+                yield Problem(n, too_long, "", "too_long")
+            raise LogFormatError(f"{self.path}: unreadable {self.unit.split()[0]} header ({_short(exc)})") from None
+        lines = feed
+        if first is not None:
+            lines = _prepend(first, feed)
+        for raw in lines:
+            while feed.too_long:
+                yield Problem(feed.too_long.pop(0), too_long, "", "too_long")
+            line = raw.strip()
+            if not line:
+                continue
+            n = feed.line_no
+            try:
+                msg = self._parse(reader, line)
+            except Exception as exc:  # noqa: BLE001 - as above
+                yield Problem(n, _short(exc), line, "malformed")
+                continue
+            if msg is None:
+                continue
+            out = self._message(msg, n)
+            if out is not None:
+                yield out
+        for n in feed.too_long:
+            yield Problem(n, too_long, "", "too_long")
+
+
+def _prepend(first: str, rest: _LineFeed) -> Iterator[str]:
+    yield first
+    yield from rest
+
+
+def _short(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    return ascii(text[:80])[1:-1]
+
+
+class _AscReader(_TextReader):
+    unit = "ASC line"
+
+    def _pycan(self, feed: _LineFeed) -> tuple[Any, str | None]:
+        from can.io.asc import ASCReader
+
+        reader = ASCReader(feed)  # relative time stamps (python-can's default): the measurement starts at 0
+        reader._extract_header()  # noqa: SLF001 - python-can's own header parser
+        # _extract_header consumes the first line after the header; a frame there must not be lost
+        line = feed.line
+        return reader, (line + "\n" if feed.line_no and not _is_asc_header(line) else None)
+
+    def _parse(self, reader: Any, line: str) -> Any:
+        from can.io.asc import ASC_MESSAGE_REGEX, ASC_TRIGGER_REGEX
+
+        trigger = ASC_TRIGGER_REGEX.match(line)
+        if trigger:  # python-can's ASCReader.__iter__, one line
+            reader.start_time = (
+                0.0 if reader.relative_timestamp else reader._datetime_to_timestamp(trigger.group("datetime_string"))
+            )
+            return None
+        if not ASC_MESSAGE_REGEX.match(line):
+            return None  # comments, statistics, events: not frames
+        stamp, channel, rest = line.split(None, 2)
+        kwargs: dict[str, Any] = {"timestamp": float(stamp) + reader.start_time}
+        if channel == "CANFD":
+            kwargs["is_fd"] = True
+            return reader._process_fd_can_frame(rest, kwargs)
+        if not channel.isdigit():
+            return None
+        kwargs["channel"] = int(channel) - 1
+        return reader._process_classic_can_frame(rest, kwargs)
+
+
+def _is_asc_header(line: str) -> bool:
+    s = line.strip().lower()
+    return (
+        not s
+        or s.startswith(("date ", "base ", "//", "begin triggerblock"))
+        or s.endswith("internal events logged")
+        or "start of measurement" in s
+    )
+
+
+class _TrcReader(_TextReader):
+    unit = "TRC line"
+
+    def _pycan(self, feed: _LineFeed) -> tuple[Any, str | None]:
+        from can.io.trc import TRCReader
+
+        reader = TRCReader(feed)
+        first = reader._extract_header()  # noqa: SLF001 - the first line after the header is a frame
+        return reader, (first + "\n" if first and not first.startswith(";") else None)
+
+    def _parse(self, reader: Any, line: str) -> Any:
+        if line.startswith(";"):
+            return None
+        cols = tuple(line.split(maxsplit=reader._num_columns))
+        msg = reader._parse_cols(cols)
+        if msg is not None and isinstance(msg.timestamp, float) and math.isfinite(msg.timestamp):
+            # start (days since 1899, a double: 0.6 us steps) + offset (ms, 3 decimals): the sum carries float
+            # noise below the format's 1 us resolution; rounded to it, the stamps are candump's to the bit
+            msg.timestamp = round(msg.timestamp, 6)
+        return msg
+
+
+class _CsvReader(_MessageReader):
+    """python-can's CSV: ``timestamp,arbitration_id,extended,remote,error,dlc,data`` (data in base64), parsed
+    here line by line as ``can.io.csv.CSVReader`` does (it stops at the first bad line)."""
+
+    unit = "CSV line"
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        for n, line in self._lines():
+            if len(line) > MAX_TEXT_LINE:
+                yield Problem(n, f"line longer than {MAX_TEXT_LINE} characters", "", "too_long")
+                continue
+            text = line.strip()
+            if not text or (n == 1 and text.startswith("timestamp,")):
+                continue
+            fields = text.split(",")
+            if len(fields) != 7:
+                yield Problem(n, f"expected 7 comma-separated fields, got {len(fields)}", text, "malformed")
+                continue
+            stamp, ident, extended, remote, error, dlc, data = fields
+            try:
+                ts = float(stamp)
+                frame_id = int(ident, 16)
+                payload = base64.b64decode(data, validate=True)
+                int(dlc)
+            except (ValueError, binascii.Error) as exc:
+                yield Problem(n, _short(exc), text, "malformed")
+                continue
+            if error == "1":
+                self._skip("error")
+            elif remote == "1":
+                self._skip("remote")
+            elif len(payload) > 8:
+                self._skip("fd")
+            else:
+                yield _frame(ts, 0, frame_id, payload, n, extended == "1")
+
+
+class _BlfReader(_MessageReader):
+    """Binary Logging Format (Vector), parsed here within bounds (the module docstring says why), with
+    python-can's structures: same frames and time stamps as ``can.io.blf.BLFReader`` on a sound file."""
+
+    unit = "BLF object"
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        from can.io import blf
+
+        fh = self._fh
+        header = fh.read(blf.FILE_HEADER_STRUCT.size)
+        if len(header) < blf.FILE_HEADER_STRUCT.size or header[:4] != b"LOGG":
+            raise LogFormatError(f"{self.path}: not a BLF file (truncated or foreign header)")
+        fields = blf.FILE_HEADER_STRUCT.unpack(header)
+        header_size = fields[1]
+        if not blf.FILE_HEADER_STRUCT.size <= header_size <= 1 << 16:
+            raise LogFormatError(f"{self.path}: corrupt BLF header (header size {header_size})")
+        self.start = blf.systemtime_to_timestamp(fields[14:22])
+        fh.read(header_size - blf.FILE_HEADER_STRUCT.size)
+        self._record = 0
+        self._tail = b""
+        self._lost = False  # a container was lost: the next one may start inside an object
+        base = blf.OBJ_HEADER_BASE_STRUCT
+        while True:
+            offset = fh.tell()
+            head = fh.read(base.size)
+            if not head:
+                break
+            if len(head) < base.size:
+                yield Problem(self._record + 1, f"truncated object header at byte {offset}", "", "malformed")
+                break
+            signature, _, _, obj_size, obj_type = base.unpack(head)
+            if signature != b"LOBJ" or not base.size + 16 <= obj_size <= MAX_BLF_OBJECT:
+                what = "no object signature" if signature != b"LOBJ" else f"object size {obj_size}"
+                yield Problem(self._record + 1, f"{what} at byte {offset}; skipped to the next object", "", "malformed")
+                self._tail, self._lost = b"", True
+                if not self._resync(offset + 1):
+                    break
+                continue
+            body = fh.read(obj_size - base.size)
+            if len(body) < obj_size - base.size:
+                yield Problem(self._record + 1, f"truncated object at byte {offset} (file ends)", "", "malformed")
+                break
+            fh.read(obj_size % 4)
+            if obj_type != blf.LOG_CONTAINER:
+                continue  # python-can reads frames only from containers
+            method, _ = blf.LOG_CONTAINER_STRUCT.unpack_from(body)
+            payload = body[blf.LOG_CONTAINER_STRUCT.size :]
+            if method == blf.ZLIB_DEFLATE:
+                unpacker = zlib.decompressobj()
+                try:
+                    data = unpacker.decompress(payload, MAX_BLF_OBJECT)
+                except zlib.error as exc:
+                    yield Problem(self._record + 1, f"container at byte {offset}: {exc}", "", "malformed")
+                    self._tail, self._lost = b"", True
+                    continue
+                if unpacker.unconsumed_tail:
+                    yield Problem(
+                        self._record + 1,
+                        f"container at byte {offset} unpacks to more than {MAX_BLF_OBJECT >> 20} MiB",
+                        "",
+                        "malformed",
+                    )
+                    self._tail, self._lost = b"", True
+                    continue
+            elif method == blf.NO_COMPRESSION:
+                data = payload
+            else:
+                yield Problem(self._record + 1, f"unknown compression {method} at byte {offset}", "", "malformed")
+                self._tail, self._lost = b"", True
+                continue
+            yield from self._container(blf, data)
+        if self._tail:
+            yield Problem(self._record + 1, "the last object is cut off (file ends)", "", "malformed")
+
+    def _resync(self, offset: int) -> bool:
+        """Seek to the next ``LOBJ`` at or after ``offset``; False at the end of the file."""
+        fh = self._fh
+        fh.seek(offset)
+        carry = b""
+        while True:
+            chunk = fh.read(_READ_CHUNK)
+            if not chunk:
+                return False
+            buf = carry + chunk
+            i = buf.find(b"LOBJ")
+            if i >= 0:
+                fh.seek(offset - len(carry) + i)
+                return True
+            carry = buf[-3:]
+            offset += len(chunk)
+
+    def _container(self, blf: Any, data: bytes) -> Iterator[LogFrame | Problem]:
+        if self._tail:
+            data = self._tail + data
+            self._tail = b""
+        base = blf.OBJ_HEADER_BASE_STRUCT
+        v1, v2 = blf.OBJ_HEADER_V1_STRUCT, blf.OBJ_HEADER_V2_STRUCT
+        can_msg = blf.CAN_MSG_STRUCT
+        start = self.start
+        end = len(data)
+        pos = 0
+        while pos + base.size <= end:
+            at = data.find(b"LOBJ", pos, pos + 8)  # objects are padded to 4 bytes
+            if at < 0:  # garbage (or the end of an object lost with the container before): the next signature
+                at = data.find(b"LOBJ", pos + 1)
+                self._record += 1
+                if not self._lost:
+                    yield Problem(self._record, f"garbage inside a container ({(at if at >= 0 else end) - pos} bytes)")
+                if at < 0:
+                    self._lost = False
+                    return
+            self._lost = False
+            pos = at
+            if pos + base.size > end:
+                break
+            _, _, version, obj_size, obj_type = base.unpack_from(data, pos)
+            if obj_size < base.size:
+                self._record += 1
+                yield Problem(self._record, f"object size {obj_size} inside a container", "", "malformed")
+                return
+            if pos + obj_size > end:  # continues in the next container
+                break
+            self._record += 1
+            record = self._record
+            next_pos = pos + obj_size
+            body = pos + base.size
+            try:
+                if version == 1:
+                    flags, _, _, stamp = v1.unpack_from(data, body)
+                    body += v1.size
+                elif version == 2:
+                    flags, _, _, stamp = v2.unpack_from(data, body)
+                    body += v2.size
+                else:
+                    yield Problem(record, f"object header version {version}", "", "malformed")
+                    pos = next_pos
+                    continue
+                ts = stamp / 1e5 if flags == 1 else stamp / 1e9
+                if obj_type in (blf.CAN_MESSAGE, blf.CAN_MESSAGE2):
+                    _, msg_flags, dlc, can_id, payload = can_msg.unpack_from(data, body)
+                    if msg_flags & blf.REMOTE_FLAG:
+                        self._skip("remote")
+                    else:
+                        ident = can_id & 0x1FFFFFFF
+                        yield _frame(ts + start, 0, ident, payload[:dlc], record, bool(can_id & blf.CAN_MSG_EXT))
+                elif obj_type == blf.CAN_ERROR_EXT:
+                    self._skip("error")
+                elif obj_type in (blf.CAN_FD_MESSAGE, blf.CAN_FD_MESSAGE_64):
+                    self._skip("fd")
+            except struct.error:
+                yield Problem(record, f"object type {obj_type} shorter than its fields", "", "malformed")
+            pos = next_pos
+        self._tail = data[pos:]
+        if len(self._tail) > MAX_BLF_OBJECT:
+            self._record += 1
+            yield Problem(self._record, "an object spans more than 16 MiB of containers", "", "malformed")
+            self._tail = b""
+
+
+class _Mf4Reader(_MessageReader):
+    """ASAM MDF 4 through python-can's ``MF4Reader`` (``asammdf``: the ``mf4`` extra)."""
+
+    unit = "MF4 record"
+
+    def __init__(self, path: Path, max_bytes: int, **rules: Any) -> None:
+        super().__init__(path, max_bytes, **rules)
+        self.total = 0
+        self._done = 0
+
+    @property
+    def position(self) -> int:
+        return self._done
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        try:
+            from can.io.mf4 import MF4Reader
+        except ImportError:  # pragma: no cover - python-can without mf4.py
+            MF4Reader = None  # noqa: N806
+        try:
+            import asammdf  # noqa: F401
+        except ModuleNotFoundError:
+            raise LogFormatError(
+                f"{self.path}: reading MF4 needs the 'mf4' extra (asammdf is not installed): pip install 'ptw-rt[mf4]'"
+            ) from None
+        size = _size(self._fh)
+        self._fh.close()  # asammdf opens the (checked, regular) file itself
+        quiet = logging.getLogger("asammdf")
+        level = quiet.level
+        quiet.setLevel(logging.CRITICAL)  # asammdf logs every oddity of a foreign file: counted here instead
+        try:
+            reader = _quietly(lambda: MF4Reader(str(self.path)), f"{self.path}: unreadable MF4 file")
+            self.total = self._check_counts(reader, size)
+            messages = iter(reader)
+            n = 0
+            while True:
+                try:
+                    msg = next(messages)
+                except StopIteration:
+                    break
+                except Exception as exc:  # noqa: BLE001 - as above: the rest of the file is lost, counted once
+                    yield Problem(n + 1, f"MF4 read error after {n} records: {_short(exc)}", "", "malformed")
+                    break
+                n += 1
+                self._done = n
+                out = self._message(msg, n)
+                if out is not None:
+                    yield out
+        finally:
+            quiet.setLevel(level)
+
+    def _check_counts(self, reader: Any, size: int) -> int:
+        total = 0
+        for i, group in enumerate(reader._mdf.groups):  # noqa: SLF001 - the declared sizes, before any read
+            cg = group.channel_group
+            records = int(cg.cycles_nr)
+            width = max(1, int(getattr(cg, "samples_byte_nr", 1)) + int(getattr(cg, "invalidation_bytes_nr", 0)))
+            if records < 0 or records * width > MAX_MF4_RATIO * max(size, 1):
+                raise LogFormatError(
+                    f"{self.path}: corrupt MF4 file (channel group {i} declares {records} records in {size} bytes)"
+                )
+            total += records
+        return total
+
+
+def _quietly(make: Any, what: str) -> Any:
+    """``make()``, any exception turned into ``LogFormatError(what (...))``. asammdf's half-built objects raise
+    again in ``__del__`` when collected ("Exception ignored in ..." with a traceback on stderr): they are
+    collected here, with that report silenced."""
+    try:
+        return make()
+    except Exception as exc:  # noqa: BLE001 - asammdf on untrusted content: any error is the file's
+        message = f"{what} ({type(exc).__name__}: {_short(exc)})"
+        exc.__traceback__ = None
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda unraisable: None
+    try:
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
+    raise LogFormatError(message)
+
+
+_READERS: dict[str, type[_MessageReader]] = {
+    "asc": _AscReader,
+    "trc": _TrcReader,
+    "csv": _CsvReader,
+    "blf": _BlfReader,
+    "mf4": _Mf4Reader,
+}
+
+
+def open_log(
+    path: str | Path,
+    *,
+    fmt: str | None = None,
+    max_warnings: int | None = None,
+    max_bytes: int = MAX_LOG_BYTES,
+    **rules: Any,
+) -> tuple[Iterator[tuple[float, int, bytes, bool]], LogStats]:
+    """The classic CAN data frames of the log at ``path`` as (timestamp, id, data, extended), in file order
+    through the time rule, and the ``LogStats`` that fill while the iterator runs.
+
+    ``fmt``: one of ``FORMATS`` (default: ``detect_format``). ``rules``: the time rule's ``max_jump``,
+    ``reorder_tolerance``, ``confirm``. Raises ``CandumpFileError``/``LogFormatError`` (one line each) for a
+    file that cannot be read at all; never raises on a bad record (counted in the stats) except when the
+    iterator meets a header it cannot read at all (``LogFormatError``).
+    """
+    path = Path(path)
+    if fmt is None:
+        fmt, size = detect_format(path, max_bytes, warn=True)
+    else:
+        size = path.stat().st_size if path.is_file() else 0
+    if fmt == "candump":
+        reader: TimeRule = CandumpReader(path, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
+    else:
+        reader = _READERS[fmt](path, max_bytes, max_warnings=max_warnings, **rules)
+    stats = LogStats(path, fmt, size, reader)
+    if fmt != "candump":
+        stats.skipped = reader.skipped  # type: ignore[attr-defined]
+    return _frames(reader, stats), stats
+
+
+def _frames(reader: TimeRule, stats: LogStats) -> Iterator[tuple[float, int, bytes, bool]]:
+    try:
+        for f in reader:
+            if f.is_remote:
+                stats.skip("remote")
+                continue
+            if stats.channel is None:
+                stats.channel = f.channel
+            yield f.timestamp, f.frame_id, f.data, f.is_extended
+    finally:
+        reader.close()
+
+
+# ---------------------------------------------------------------------- writers
+
+
+class _PycanWriter:
+    """A python-can writer behind the candump writer's ``write(timestamp, id, data)``."""
+
+    def __init__(self, path: Path, fmt: str) -> None:
+        import can
+
+        self.name = str(path)
+        self.format = fmt
+        self._message = can.Message
+        self.lines_written = 0
+        if fmt == "mf4":
+            try:
+                import asammdf  # noqa: F401
+            except ModuleNotFoundError:
+                raise LogFormatError(
+                    f"{path}: writing MF4 needs the 'mf4' extra (asammdf is not installed): pip install 'ptw-rt[mf4]'"
+                ) from None
+            self._writer = _Mf4BulkWriter(path)
+        else:
+            from can.io.asc import ASCWriter
+            from can.io.blf import BLFWriter
+            from can.io.csv import CSVWriter
+            from can.io.trc import TRCWriter
+
+            cls = {"asc": ASCWriter, "blf": BLFWriter, "trc": TRCWriter, "csv": CSVWriter}[fmt]
+            self._writer = cls(path)
+        self._on_message = self._writer.on_message_received
+
+    def write(self, timestamp: float, frame_id: int, data: bytes, *, extended: bool | None = None, **_: Any) -> None:
+        self._on_message(
+            self._message(
+                timestamp=timestamp,
+                arbitration_id=frame_id,
+                is_extended_id=frame_id > _STD_MAX if extended is None else extended,
+                data=data,
+                dlc=len(data),
+                channel=0,
+                is_rx=False,
+                check=False,
+            )
+        )
+        self.lines_written += 1
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        if self._writer is not None:
+            writer, self._writer = self._writer, None
+            writer.stop()
+
+    def __enter__(self) -> _PycanWriter:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def _Mf4BulkWriter(path: Path) -> Any:  # noqa: N802 - a class made on first use (asammdf is optional)
+    """python-can's ``MF4Writer`` with the data frames appended in blocks of 4096, not one asammdf call per frame
+    (~0.4 ms each: 12 s for a 120 s ride's estimates); the file is the one ``MF4Writer`` writes."""
+    import numpy as np
+    from can.io.mf4 import STD_DTYPE, MF4Writer
+
+    class Writer(MF4Writer):
+        BLOCK = 4096
+
+        def __init__(self, file: Any) -> None:
+            super().__init__(file)
+            self._rows = np.zeros(self.BLOCK, dtype=STD_DTYPE)
+            self._stamps = np.zeros(self.BLOCK)
+            self._n = 0
+
+        def on_message_received(self, msg: Any) -> None:
+            if msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
+                self._flush_rows()
+                super().on_message_received(msg)
+                return
+            stamp = msg.timestamp
+            self.last_timestamp = max(self.last_timestamp, stamp)
+            row = self._rows[self._n]
+            row["CAN_DataFrame.BusChannel"] = msg.channel or 0
+            row["CAN_DataFrame.ID"] = msg.arbitration_id
+            row["CAN_DataFrame.IDE"] = int(msg.is_extended_id)
+            row["CAN_DataFrame.Dir"] = 0 if msg.is_rx else 1
+            size = len(msg.data)
+            row["CAN_DataFrame.DataLength"] = size
+            row["CAN_DataFrame.DLC"] = msg.dlc
+            row["CAN_DataFrame.DataBytes"][:size] = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+            row["CAN_DataFrame.DataBytes"][size:] = 0
+            self._stamps[self._n] = stamp - self._start_time
+            self._n += 1
+            if self._n == self.BLOCK:
+                self._flush_rows()
+
+        def _flush_rows(self) -> None:
+            if self._n:
+                self._mdf.extend(0, [(self._stamps[: self._n].copy(), None), (self._rows[: self._n].copy(), None)])
+                self._n = 0
+
+        def stop(self) -> None:
+            self._flush_rows()
+            super().stop()
+
+    return Writer(path)
+
+
+def writer_format(path: str | Path) -> str:
+    """The format an output log's extension names (none: candump); ``LogFormatError`` for an unknown one."""
+    path = Path(path)
+    if not path.suffix:
+        return "candump"
+    fmt = format_of_extension(path)
+    if fmt is None:
+        known = ", ".join(f"{ext} ({FORMATS[f]})" for ext, f in EXTENSIONS.items())
+        raise LogFormatError(f"{path}: unknown log format {path.suffix!r} for an output (known: {known})")
+    return fmt
+
+
+def open_writer(path: str | Path, channel: str = "vcan0") -> Any:
+    """A writer for the format ``path``'s extension names (no extension: candump), with ``write(timestamp, id,
+    data)``, ``close()`` and the context manager protocol. candump is ``CandumpWriter`` (its output is
+    byte-identical to what ``ptw-rt replay`` always wrote); the others are python-can's writers (channel 0 of
+    their numbering). Raises ``LogFormatError`` for an unknown extension or a missing ``mf4`` extra."""
+    path = Path(path)
+    fmt = writer_format(path)
+    if fmt == "candump":
+        return CandumpWriter(path, channel=channel)
+    return _PycanWriter(path, fmt)

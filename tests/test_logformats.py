@@ -1,0 +1,322 @@
+"""Every log format python-can reads, in and out (issue #15, part 1): a simulated ride written with python-can's
+own writers replays to the same estimates as its candump original; sniffing; not a log, empty, hostile files."""
+
+from __future__ import annotations
+
+import io
+import os
+import random
+import shutil
+import subprocess
+import sys
+import time
+import tracemalloc
+import zlib
+from pathlib import Path
+
+import can
+import pytest
+
+from ptw_rt.apps.replay import replay_log
+from ptw_rt.io.candump import CandumpWriter
+from ptw_rt.io.logformats import (
+    EmptyLogError,
+    LogFormatError,
+    NotACanLogError,
+    detect_format,
+    open_log,
+    open_writer,
+    sniff,
+)
+from ptw_rt.paths import DEFAULT_CONFIG
+
+FORMATS = ("asc", "blf", "trc", "csv", "mf4")
+
+
+@pytest.fixture(scope="module")
+def ride(tmp_path_factory):
+    """A 5 s ride as candump (the original) and in every other format, written by python-can's writers."""
+    from ptw_rt.sim.recording import write_ride
+    from ptw_rt.sim.ride import simulate
+
+    d = tmp_path_factory.mktemp("formats")
+    original = write_ride(simulate("dlc_100", duration=5.0), d)["log"]
+    messages = list(can.LogReader(str(original)))
+    logs = {"candump": original}
+    for ext in FORMATS:
+        path = d / f"ride.{ext}"
+        with can.Logger(str(path)) as writer:
+            for msg in messages:
+                writer.on_message_received(msg)
+        logs[ext] = path
+    return logs
+
+
+@pytest.fixture(scope="module")
+def replays(ride, tmp_path_factory):
+    """Every format replayed: (output log, estimates CSV)."""
+    d = tmp_path_factory.mktemp("replays")
+    out = {}
+    for fmt, path in ride.items():
+        out[fmt] = (d / f"{fmt}.out.log", d / f"{fmt}.out.csv")
+        summary = replay_log(path, *out[fmt], DEFAULT_CONFIG)
+        assert summary["format"] == fmt and summary["malformed_lines"] == 0
+    return out
+
+
+def _frames(path, **kw):
+    it, stats = open_log(path, **kw)
+    return list(it), stats
+
+
+def _estimates(csv_path: Path) -> list[str]:
+    """The estimates CSV without its time column."""
+    return [line.split(",", 1)[1] for line in csv_path.read_text().splitlines()]
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_every_format_reads_the_frames_of_the_original(ride, fmt):
+    ref, _ = _frames(ride["candump"])
+    got, stats = _frames(ride[fmt])
+    assert stats.format == fmt and stats.malformed == 0 and not stats.skipped
+    assert [f[1:] for f in got] == [f[1:] for f in ref]
+    # ASC: python-can reads its time stamps relative to the start of the measurement
+    offset = ref[0][0] - got[0][0] if fmt == "asc" else 0.0
+    assert max(abs(a[0] - (b[0] + offset)) for a, b in zip(ref, got, strict=True)) < 1e-6
+    if fmt in ("blf", "csv", "mf4", "trc"):  # the same doubles: replays are byte-identical (next test)
+        assert [f[0] for f in got] == [f[0] for f in ref]
+
+
+@pytest.mark.parametrize("fmt", ["blf", "trc", "csv", "mf4"])
+def test_replay_of_every_format_equals_the_candump_original(replays, fmt):
+    (ref_log, ref_csv), (log, csv) = replays["candump"], replays[fmt]
+    assert log.read_bytes() == ref_log.read_bytes()
+    assert csv.read_bytes() == ref_csv.read_bytes()
+
+
+def test_replay_of_asc_equals_the_candump_original_on_its_clock(ride, replays, tmp_path):
+    """ASC stamps are relative (0 = start of measurement): the same log in candump with those stamps replays
+    to the very same estimates (absolute and relative time bases round some frames on a cycle's boundary
+    differently, so the absolute original is not the reference)."""
+    frames, _ = _frames(ride["candump"])
+    t0 = frames[0][0]
+    relative = tmp_path / "relative.log"
+    with CandumpWriter(relative, channel="vcan0") as w:
+        for t, fid, data, _ in frames:
+            w.write(round(t - t0, 6), fid, data)
+    replay_log(relative, tmp_path / "r.log", tmp_path / "r.csv", DEFAULT_CONFIG)
+    log, csv = replays["asc"]
+    assert csv.read_bytes() == (tmp_path / "r.csv").read_bytes()
+    assert log.read_bytes() == (tmp_path / "r.log").read_bytes()
+    assert _estimates(csv)[1:3] != []
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_format_found_from_the_content_without_extension(ride, fmt, tmp_path):
+    bare = tmp_path / "ride"
+    shutil.copy(ride[fmt], bare)
+    assert detect_format(bare)[0] == fmt
+    as_log = tmp_path / "ride.log"  # .log is what many tools write: the content decides
+    shutil.copy(ride[fmt], as_log)
+    assert detect_format(as_log)[0] == fmt
+    assert len(_frames(as_log)[0]) == len(_frames(ride["candump"])[0])
+
+
+def test_sniff_needs_a_frame_or_a_signature():
+    assert sniff(b"(1700000000.000000) vcan0 100#00\n") == (["candump"], [])
+    assert sniff(b"timestamp,arbitration_id,extended,remote,error,dlc,data\n") == ([], ["csv"])
+    assert sniff(b"time,roll,steer\n0.01,0.1,0.2\n") == ([], [])
+    assert sniff(b"LOGG" + bytes(140))[0] == ["blf"]
+    assert sniff(b"hello world\n" * 100) == ([], [])
+
+
+@pytest.mark.parametrize("out_ext", ["blf", "asc", "trc", "csv", "mf4"])
+def test_out_writes_the_format_its_extension_names(ride, replays, out_ext, tmp_path):
+    out = tmp_path / f"est.{out_ext}"
+    replay_log(ride["candump"], out, None, DEFAULT_CONFIG)
+    ref, _ = _frames(replays["candump"][0])
+    by_pycan = list(can.LogReader(str(out)))
+    got, stats = _frames(out)
+    assert stats.format == out_ext
+    assert len(by_pycan) == len(got) == len(ref)
+    assert [(m.arbitration_id, bytes(m.data)) for m in by_pycan] == [(f[1], f[2]) for f in ref]
+    assert [f[1:] for f in got] == [f[1:] for f in ref]
+    # the cycle's time: candump prints it to the microsecond, BLF keeps nanoseconds, ASC starts at 0
+    offset = ref[0][0] - got[0][0] if out_ext == "asc" else 0.0
+    assert max(abs(a[0] - (b[0] + offset)) for a, b in zip(ref, got, strict=True)) < 1.5e-6
+
+
+def test_out_candump_is_byte_identical_to_the_candump_writer(ride, replays, tmp_path):
+    """--out x.log and --out x (no extension): the candump writer, as always."""
+    replay_log(ride["candump"], tmp_path / "noext", None, DEFAULT_CONFIG)
+    assert (tmp_path / "noext").read_bytes() == replays["candump"][0].read_bytes()
+    with pytest.raises(LogFormatError, match="unknown log format '.xyz'"):
+        open_writer(tmp_path / "x.xyz")
+
+
+def test_asc_round_trip_through_out(ride, tmp_path):
+    """ASC in, ASC out, ASC in again: the estimates of the second pass are the estimator's frames of the first."""
+    first = tmp_path / "est.asc"
+    replay_log(ride["asc"], first, None, DEFAULT_CONFIG)
+    frames, stats = _frames(first)
+    assert stats.format == "asc" and stats.malformed == 0 and len(frames) > 1000
+    assert frames[0][0] == pytest.approx(0.0, abs=1e-9)  # an ASC's clock starts at its first frame
+
+
+def test_bad_lines_in_text_formats_are_counted_and_skipped(ride, tmp_path):
+    for fmt, bad in (
+        # (an ASC line that does not look like a frame is an event python-can skips, as here: not counted)
+        ("asc", ["  0.100000 1  10Z             Rx   d 2 00 GG", "  0.200000 1  FFFF  Rx   d 2 00 11"]),
+        ("trc", ["      5       1.000 DT  1     01ZZ Rx -  2    00 11", "x" * 5000]),
+        ("csv", ["1700003000.5,0x100,0,0,0,2,!!!", "1,2,3"]),
+    ):
+        lines = ride[fmt].read_text().splitlines()
+        k = len(lines) // 2
+        path = tmp_path / f"bad.{fmt}"
+        path.write_text("\n".join(lines[:k] + bad + lines[k:]) + "\n")
+        good, _ = _frames(ride[fmt])
+        got, stats = _frames(path)
+        assert len(got) == len(good), fmt
+        assert stats.malformed == 2, (fmt, stats.rejected)
+        line = stats.problems_line()
+        assert line.startswith(f"{path}: 2 ") and "\x00" not in line and "\xff" not in line and len(line) < 600
+
+
+def _hostile_blfs(blf_bytes: bytes, d: Path) -> dict[str, Path]:
+    from can.io import blf
+
+    rng = random.Random(5)
+    junk = bytes(rng.randrange(256) for _ in range(20000))
+    files = {
+        "truncated": blf_bytes[: len(blf_bytes) // 2],
+        "garbage_body": blf_bytes[:144] + junk,
+        "garbage_inside": blf_bytes[: len(blf_bytes) // 3] + junk[:3000] + blf_bytes[len(blf_bytes) // 3 :],
+        "header_only": blf_bytes[:144],
+        "header_cut": blf_bytes[:50],
+        "zero_size_object": blf_bytes[:144]
+        + blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, 0, blf.LOG_CONTAINER)
+        + blf_bytes[144:],
+        "huge_size_object": blf_bytes[:144]
+        + blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, 0xFFFFFFF0, blf.LOG_CONTAINER)
+        + blf_bytes[144:],
+        "header_size_lie": blf_bytes[:4] + (0xFFFFFF00).to_bytes(4, "little") + blf_bytes[8:],
+    }
+    # a container unpacking to 64 MiB of zeros (64 kB on disk)
+    packed = zlib.compress(bytes(64 << 20), 9)
+    body = blf.LOG_CONTAINER_STRUCT.pack(blf.ZLIB_DEFLATE, 64 << 20) + packed
+    obj = blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, 16 + len(body), blf.LOG_CONTAINER) + body
+    files["zip_bomb"] = blf_bytes[:144] + obj + bytes(-len(obj) % 4) + blf_bytes[144:]
+    out = {}
+    for name, data in files.items():
+        (d / f"{name}.blf").write_bytes(data)
+        out[name] = d / f"{name}.blf"
+    return out
+
+
+def test_hostile_blf_never_hangs_raises_or_balloons(ride, tmp_path):
+    small = tmp_path / "small_containers.blf"  # many containers: garbage in one loses that one only
+    writer = can.BLFWriter(str(small))
+    writer.max_container_size = 2048
+    for msg in can.LogReader(str(ride["candump"])):
+        writer.on_message_received(msg)
+    writer.stop()
+    n_good = len(_frames(small)[0])
+    assert n_good == len(_frames(ride["blf"])[0])
+    for name, path in _hostile_blfs(small.read_bytes(), tmp_path).items():
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        try:
+            frames, stats = _frames(path)
+        except LogFormatError as exc:  # a header that cannot be read at all: one line
+            assert name in ("header_cut", "header_size_lie"), (name, exc)
+            assert "\n" not in str(exc)
+            continue
+        finally:
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+        assert time.perf_counter() - t0 < 20, name
+        assert peak < 80 << 20, (name, peak)
+        assert len(frames) <= n_good, name
+        if name != "header_only":
+            assert stats.malformed >= 1, (name, stats.rejected)
+        if name in ("zero_size_object", "huge_size_object", "zip_bomb"):
+            assert len(frames) == n_good, name  # the bad object skipped, every frame after it read
+        if name == "garbage_inside":
+            assert len(frames) > n_good // 2, name
+
+
+def test_hostile_mf4_is_one_line(ride, tmp_path):
+    data = ride["mf4"].read_bytes()
+    rng = random.Random(9)
+    for name, content in (
+        ("truncated", data[: len(data) // 2]),
+        ("garbage", data[:64] + bytes(rng.randrange(256) for _ in range(20000))),
+    ):
+        path = tmp_path / f"{name}.mf4"
+        path.write_bytes(content)
+        err = io.StringIO()
+        hook, sys.unraisablehook = sys.unraisablehook, lambda u, err=err: err.write(repr(u))
+        try:
+            with pytest.raises(LogFormatError, match="unreadable MF4") as caught:
+                _frames(path)
+        finally:
+            sys.unraisablehook = hook
+        assert "\n" not in str(caught.value) and err.getvalue() == ""
+
+
+def test_not_a_log_and_empty(tmp_path):
+    rng = random.Random(3)
+    (tmp_path / "x.asc").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))
+    with pytest.raises(NotACanLogError, match=r"x.asc: not a CAN log \(no candump/ASC/BLF/TRC/CSV/MF4 frame"):
+        detect_format(tmp_path / "x.asc")
+    (tmp_path / "e.log").write_bytes(b"")
+    with pytest.raises(EmptyLogError, match="empty log"):
+        detect_format(tmp_path / "e.log")
+    (tmp_path / "h.csv").write_text("timestamp,arbitration_id,extended,remote,error,dlc,data\n")
+    with pytest.raises(EmptyLogError, match="empty log"):
+        replay_log(tmp_path / "h.csv", tmp_path / "o.log", None, DEFAULT_CONFIG)
+
+
+def _cli(args, cwd):
+    return subprocess.run(
+        [sys.executable, "-m", "ptw_rt", *map(str, args)],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        errors="replace",
+        timeout=300,
+        env={**os.environ, "NUMBA_NUM_THREADS": "1"},
+    )
+
+
+def test_cli_refuses_not_a_log_and_empty_in_one_line(ride, tmp_path):
+    rng = random.Random(4)
+    (tmp_path / "x.log").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))
+    (tmp_path / "empty.log").write_bytes(b"")
+    shutil.copy(ride["blf"], tmp_path / "ok.blf")
+    cases = [
+        (["replay", "x.log", "--out", "o.log"], "ptw-rt replay: x.log: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 "),
+        (["replay", "empty.log", "--out", "o.log"], "ptw-rt replay: empty.log: empty log (0 bytes)"),
+        (["replay", "ok.blf", "--out", "o.txt"], "ptw-rt replay: o.txt: unknown log format '.txt'"),
+    ]
+    for args, start in cases:
+        proc = _cli(args, tmp_path)
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert proc.stderr.splitlines() == [proc.stderr.strip()] and proc.stderr.startswith(start), proc.stderr
+        assert proc.stdout == ""
+
+
+def test_directory_replay_takes_every_format_and_lists_failures(ride, tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    for fmt in ("candump", "blf", "csv"):
+        shutil.copy(ride[fmt], src / f"r_{fmt}{ride[fmt].suffix}")
+    (src / "truth.csv").write_text("time,roll\n0.0,0.1\n")  # not a CAN CSV: not taken from a directory
+    (src / "junk.asc").write_bytes(b"\x00\x01 not a log\n" * 10)
+    proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "2", "--no-progress"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert [line for line in proc.stderr.splitlines() if line.startswith("error: ")] == [
+        f"error: {src / 'junk.asc'}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 frame in the first 64 KiB)"
+    ]
+    outs = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert outs == ["r_blf.blf", "r_candump.log", "r_csv.csv"]

@@ -1,0 +1,68 @@
+"""Progress on stderr (issue #15, part 4): a bar on a terminal, plain periodic lines otherwise, and the one line
+a user waiting on a cold numba cache gets."""
+
+from __future__ import annotations
+
+import io
+import os
+
+from ptw_rt import _numba_cache
+from ptw_rt.progress import Progress
+
+
+class Tty(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_share_of_one_job_on_a_terminal():
+    buf = Tty()
+    p = Progress(1.0, label="replay ride.blf", stream=buf, interval=0.0)
+    p.update(0.5)
+    p.update(0.75)
+    p.finish()
+    out = buf.getvalue()
+    assert out.count("\r") == 3 and " 50%" in out and " 75%" in out and "100%" in out and out.endswith("\n")
+
+
+def test_a_short_job_shows_nothing():
+    for stream in (Tty(), io.StringIO()):
+        p = Progress(1.0, stream=stream, delay=60.0)
+        p.update(0.5)
+        p.finish()
+        assert stream.getvalue() == ""
+
+
+def test_plain_lines_when_not_a_terminal():
+    buf = io.StringIO()
+    p = Progress(1.0, label="replay x.log", stream=buf, every=0.0)
+    p.update(0.25)
+    p.update(0.5)
+    p.finish()
+    lines = buf.getvalue().splitlines()
+    assert lines[0].startswith("replay x.log:  25% done") and lines[-1].startswith("replay x.log: done")
+    assert "\r" not in buf.getvalue()
+
+
+def test_cold_cache_is_announced_once(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("NUMBA_DISABLE_JIT", raising=False)
+    buf = io.StringIO()
+    assert _numba_cache.is_cold() and _numba_cache.announce_compile(buf)
+    assert buf.getvalue() == f"compiling the estimator, about 20 s, once (numba cache: {tmp_path})\n"
+    (tmp_path / "core_0123").mkdir()
+    (tmp_path / "core_0123" / "estimator.estimator_step-242.py311.nbi").write_bytes(b"")
+    assert not _numba_cache.is_cold() and not _numba_cache.announce_compile(io.StringIO())
+    monkeypatch.setenv("NUMBA_DISABLE_JIT", "1")
+    (tmp_path / "core_0123" / "estimator.estimator_step-242.py311.nbi").unlink()
+    assert not _numba_cache.is_cold()
+
+
+def test_the_running_cache_is_warm_after_a_step():
+    """The test session has run the estimator: its cache directory (keyed to the source) has the index files."""
+    from ptw_rt.edge.cycle import build_runner
+    from ptw_rt.paths import DEFAULT_CONFIG
+
+    build_runner(DEFAULT_CONFIG).cycle(0.0)
+    if os.environ.get("NUMBA_DISABLE_JIT", "0") in ("", "0"):
+        assert not _numba_cache.is_cold()
