@@ -38,6 +38,10 @@ def _version() -> str:
 
 
 def _analyze(args) -> int:
+    if getattr(args, "outputs", None):
+        from ptw_rt.design.output_sets import run_analyze_outputs
+
+        return run_analyze_outputs(args)
     from ptw_rt.analysis.report import run_analyze
 
     return run_analyze(args)

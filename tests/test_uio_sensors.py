@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from ptw_rt.analysis.outputs import CANDIDATES, analyze_outputs
 from ptw_rt.core import uio_sensors as cus
 from ptw_rt.design import uio_sensors as dus
 from ptw_rt.design.discretize import zoh
 from ptw_rt.design.file import load_design
+from ptw_rt.design.output_sets import CANDIDATES, analyze_outputs
 from ptw_rt.model.sharp import kmh, state_space
 from ptw_rt.paths import DEFAULT_DESIGN
 

@@ -83,18 +83,6 @@ def format_table(result: dict[str, Any]) -> str:
 
 def run_analyze(args) -> int:
     p = load_vehicle(args.config)
-    if getattr(args, "outputs", None):
-        from ptw_rt.analysis.outputs import DEFAULT_SPEEDS_KMH, analyze_outputs, format_outputs_table, parse_candidates
-        from ptw_rt.errors import UserFacingError
-
-        try:
-            cands = parse_candidates(None if args.outputs == "all" else args.outputs, args.unknown)
-        except ValueError as exc:
-            raise UserFacingError(str(exc)) from None
-        result = analyze_outputs(p, cands, args.speeds or list(DEFAULT_SPEEDS_KMH))
-        title = f"Output sets of '{p.name}' ({args.config}): strong detectability, relative degree, derivatives\n"
-        emit(result, args.json, title + format_outputs_table(result))
-        return 0
     result = analyze(p, args.speeds or [20, 50, 80, 100, 120])
     emit(result, args.json, f"Lateral model of '{p.name}' ({args.config})\n" + format_table(result))
     return 0

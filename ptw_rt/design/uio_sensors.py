@@ -19,7 +19,7 @@ Normal form: xi_1 = [C_i At^k e, k < rho_i] per output (rho_i its relative degre
 T2 D = 0 (the zero dynamics, eigenvalues = the invariant zeros), and eq. 15 with the top row of each
 output: zeta = Dbar^-1 ([d/dt xi_1,top] - Abar xi). The differentiator on output i has order rho_i + 1
 and supplies e_i ... e_i^(rho_i): the highest derivative of each measured signal the reconstruction
-needs is its relative degree (`ptw_rt/analysis/outputs.py` tabulates them for every candidate).
+needs is its relative degree (`ptw_rt/design/output_sets.py` tabulates them for every candidate).
 
 Offline only (scipy); the runtime is `ptw_rt/core/uio_sensors.py`.
 """

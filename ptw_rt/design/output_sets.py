@@ -211,3 +211,20 @@ def parse_candidates(outputs: str | None, unknown: str | None):
                 raise ValueError(f"--outputs {group}: unknown inputs {k} need {need} output(s) (square system)")
             cands.append((outs, k))
     return cands
+
+
+def run_analyze_outputs(args) -> int:
+    """`ptw-rt analyze --outputs ...`: the table of candidate output sets."""
+    from ptw_rt.errors import UserFacingError
+    from ptw_rt.model.parameters import load_vehicle
+    from ptw_rt.output import emit
+
+    p = load_vehicle(args.config)
+    try:
+        cands = parse_candidates(None if args.outputs == "all" else args.outputs, args.unknown)
+    except ValueError as exc:
+        raise UserFacingError(str(exc)) from None
+    result = analyze_outputs(p, cands, args.speeds or list(DEFAULT_SPEEDS_KMH))
+    title = f"Output sets of '{p.name}' ({args.config}): strong detectability, relative degree, derivatives\n"
+    emit(result, args.json, title + format_outputs_table(result))
+    return 0
