@@ -39,3 +39,12 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
         red=True,
         bold=True,
     )
+
+
+@pytest.fixture(scope="session")
+def design(settings):
+    """The committed design file (what the daemon loads)."""
+    from ptw_rt.design.file import load_design
+    from ptw_rt.paths import DEFAULT_DESIGN
+
+    return load_design(DEFAULT_DESIGN, settings.config_hash)

@@ -9,14 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from ptw_rt.core.conditioning import (
-    ground_yaw_rate,
-    horizontal_lateral_accel,
-    kinematic_roll,
-    new_speed_state,
-    speed_step,
-    steer_angle,
-)
+from ptw_rt.core.conditioning import ground_yaw_rate, horizontal_lateral_accel, kinematic_roll, steer_angle
+from ptw_rt.core.speed import new_speed_state, speed_step
 
 G = 9.81
 

@@ -14,7 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from ptw_rt.core import diagnostics as dia
 from ptw_rt.core import layout as lay
+from ptw_rt.core import uihosmo as uh
 from ptw_rt.core.estimator import Estimator
 from ptw_rt.design.file import load_design
 from ptw_rt.paths import DEFAULT_DESIGN
@@ -203,7 +205,8 @@ def test_never_emits_nan_or_inf_whatever_comes_in(estimator_factory, values, fla
 def test_a_runaway_observer_is_reset_and_flagged_not_propagated(estimator_factory):
     est = estimator_factory()
     ride(est, 4.0)
-    est.uh_state[:7] = 1e12  # as if the observer had blown up
+    uh_state = est.states["diagnostics"][dia.ST_UH : dia.ST_UH + uh.STATE_SIZE]
+    uh_state[:7] = 1e12  # as if the observer had blown up
     out = lay.new_estimates()
     est.step(riding_sample(4.01), out)
     assert int(out[lay.E_REASONS]) & lay.REASON_DIVERGING

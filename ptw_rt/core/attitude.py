@@ -32,6 +32,9 @@ walks and survive a restart of the dynamic states.
 
 Extended Kalman filter on x = [phi, psi, b_p, b_q, b_r, b_ay, v_y, a_v]; innovations beyond
 ``gate`` standard deviations are not applied (counted in OUT_REJECTED).
+
+Stage 3 of the estimator (`attitude_stage`, at the end of this module): the filter fed from the inputs and
+speed stages' outputs, with standstill detection and the GPS course; `attitude_step` is the filter alone.
 """
 
 from __future__ import annotations
@@ -40,6 +43,11 @@ import math
 
 import numpy as np
 from numba import njit
+
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import speed as spd
+from ptw_rt.core.layout import REASON_SPEED_LOW
+from ptw_rt.core.stage import Layout, Stage
 
 # ---- filter state x ----
 X_PHI = 0  # rad, roll (SAE: positive leaning right)
@@ -54,60 +62,119 @@ N_X = 8
 N_DYNAMIC_STATES = (X_PHI, X_PSI, X_VY, X_AV)  # reset on a restart; the biases are kept
 
 # ---- state buffer layout ----
-ST_X = 0  # x (N_X)
-ST_P = ST_X + N_X  # covariance, row-major N_X * N_X
-ST_INIT = ST_P + N_X * N_X  # 1 once initialised
-ST_PSI_INIT = ST_INIT + 1  # 1 once the heading has been set from a GPS course
-ST_PREV = ST_PSI_INIT + 1  # inputs of the previous cycle (processed one cycle late)
+# inputs of the previous cycle (processed one cycle late), at ST_PREV + PREV_*
 PREV_P, PREV_Q, PREV_R, PREV_FY, PREV_U, PREV_U_VAR, PREV_OK, PREV_P2, PREV_RG, PREV_RG2, PREV_RATES_OK = range(11)
 N_PREV = 11
+MAX_LATENCY_CYCLES = 32
+STATE = Layout(
+    "ST_",
+    x=N_X,  # the filter state x
+    p=N_X * N_X,  # its covariance, row-major
+    init=1,  # 1 once initialised (2: restart the dynamic states, biases kept)
+    psi_init=1,  # 1 once the heading has been set from a GPS course
+    prev=N_PREV,  # inputs of the previous cycle (processed one cycle late)
+    psi_hist=MAX_LATENCY_CYCLES,  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
+    psi_head=1,
+    rejected=1,  # consecutive rejected lateral-force innovations
+    tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
+)
+ST_X, ST_P, ST_INIT, ST_PSI_INIT, ST_PREV, ST_PSI_HIST, ST_PSI_HEAD, ST_REJECTED, ST_TMP = STATE.offsets
+STATE_SIZE = STATE.size
 # rad/s: what a rate not measured this cycle (held, frozen or corrupt frames) may be, as far as the filter knows
 UNMEASURED_RATE_SD = 0.5
-ST_PSI_HIST = ST_PREV + N_PREV  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
-MAX_LATENCY_CYCLES = 32
-ST_PSI_HEAD = ST_PSI_HIST + MAX_LATENCY_CYCLES
-ST_REJECTED = ST_PSI_HEAD + 1  # consecutive rejected lateral-force innovations
-ST_TMP = ST_REJECTED + 1  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
-STATE_SIZE = ST_TMP + 3 * N_X + N_X * N_X
 
-# ---- parameters (float64 vector, `attitude_params` builds it from the config) ----
-A_DT = 0
-A_G = 1
-A_IMU_HEIGHT = 2  # m above ground
-A_IMU_FORWARD = 3  # m ahead of the reference point
-A_Q_ROLL = 4  # rad/sqrt(s), roll random walk beyond the gyro (pitch coupling, vibration)
-A_Q_HEADING = 5  # rad/sqrt(s)
-A_Q_GYRO_BIAS = 6  # rad/s/sqrt(s)
-A_Q_ACCEL_BIAS = 7  # m/s^2/sqrt(s)
-A_Q_SIDESLIP_ACCEL = 8  # m/s^2/sqrt(s), drive of the Markov a_v
-A_SIDESLIP_ACCEL_TIME = 9  # s, correlation time of a_v
-A_SIDESLIP_TIME = 10  # s, mean reversion of v_y
-A_R_LATERAL = 11  # m/s^2, lateral specific-force noise (sensor + unmodelled)
-A_R_PITCH_RATE = 12  # rad/s, pitch rate of the chassis taken as noise
-A_R_COURSE = 13  # rad, GPS course noise at speed
-A_COURSE_MIN_SPEED = 14  # m/s, below: course not used
-A_LATENCY_CYCLES = 15  # GPS latency in cycles
-A_GATE = 16  # innovation gate [standard deviations]
-A_R_STANDSTILL_RATE = 17  # rad/s, gyro noise at standstill (zero-rate update)
-A_INIT_ROLL_SD = 18  # rad
-A_INIT_GYRO_BIAS_SD = 19  # rad/s
-A_INIT_ACCEL_BIAS_SD = 20  # m/s^2
-A_REOPEN_AFTER = 21  # consecutive rejected cycles after which the roll uncertainty is reopened
-PARAM_SIZE = 22
+# ---- parameters (float64 vector: `attitude_params` builds the filter's from the config, `build_params` all) ----
+PARAMS = Layout(
+    "A_",
+    dt=1,
+    g=1,
+    imu_height=1,  # m above ground
+    imu_forward=1,  # m ahead of the reference point
+    q_roll=1,  # rad/sqrt(s), roll random walk beyond the gyro (pitch coupling, vibration)
+    q_heading=1,  # rad/sqrt(s)
+    q_gyro_bias=1,  # rad/s/sqrt(s)
+    q_accel_bias=1,  # m/s^2/sqrt(s)
+    q_sideslip_accel=1,  # m/s^2/sqrt(s), drive of the Markov a_v
+    sideslip_accel_time=1,  # s, correlation time of a_v
+    sideslip_time=1,  # s, mean reversion of v_y
+    r_lateral=1,  # m/s^2, lateral specific-force noise (sensor + unmodelled)
+    r_pitch_rate=1,  # rad/s, pitch rate of the chassis taken as noise
+    r_course=1,  # rad, GPS course noise at speed
+    course_min_speed=1,  # m/s, below: course not used
+    latency_cycles=1,  # GPS latency in cycles
+    gate=1,  # innovation gate [standard deviations]
+    r_standstill_rate=1,  # rad/s, gyro noise at standstill (zero-rate update)
+    init_roll_sd=1,  # rad
+    init_gyro_bias_sd=1,  # rad/s
+    init_accel_bias_sd=1,  # m/s^2
+    reopen_after=1,  # consecutive rejected cycles after which the roll uncertainty is reopened
+    # the stage's (attitude_stage), not the filter's:
+    cal_speed=1,  # m/s: below (with a fix, no input fault, rates small), the vehicle stands still
+    cal_max_rate=1,  # rad/s: above, the vehicle is moving (rocked) and the gyros are not read as biases
+)
+(
+    A_DT,
+    A_G,
+    A_IMU_HEIGHT,
+    A_IMU_FORWARD,
+    A_Q_ROLL,
+    A_Q_HEADING,
+    A_Q_GYRO_BIAS,
+    A_Q_ACCEL_BIAS,
+    A_Q_SIDESLIP_ACCEL,
+    A_SIDESLIP_ACCEL_TIME,
+    A_SIDESLIP_TIME,
+    A_R_LATERAL,
+    A_R_PITCH_RATE,
+    A_R_COURSE,
+    A_COURSE_MIN_SPEED,
+    A_LATENCY_CYCLES,
+    A_GATE,
+    A_R_STANDSTILL_RATE,
+    A_INIT_ROLL_SD,
+    A_INIT_GYRO_BIAS_SD,
+    A_INIT_ACCEL_BIAS_SD,
+    A_REOPEN_AFTER,
+    A_CAL_SPEED,
+    A_CAL_MAX_RATE,
+) = PARAMS.offsets
+PARAM_SIZE = PARAMS.size
 
 # ---- outputs (float64 vector written every cycle) ----
-OUT_ROLL = 0  # rad, at the current cycle
-OUT_ROLL_RATE = 1  # rad/s, bias-corrected roll gyro
-OUT_YAW_RATE = 2  # rad/s, ground yaw rate, bias-corrected
-OUT_ROLL_SD = 3  # rad, standard deviation of the roll estimate
-OUT_BP = 4
-OUT_BQ = 5
-OUT_BR = 6
-OUT_BAY = 7
-OUT_VY = 8
-OUT_REJECTED = 9  # 1 if this cycle's lateral-force innovation was gated out
-OUT_HEADING = 10  # rad, wrapped to (-pi, pi]
-OUT_SIZE = 11
+OUTPUTS = Layout(
+    "OUT_",
+    roll=1,  # rad, at the current cycle
+    roll_rate=1,  # rad/s, bias-corrected roll gyro
+    yaw_rate=1,  # rad/s, ground yaw rate, bias-corrected
+    roll_sd=1,  # rad, standard deviation of the roll estimate
+    bp=1,  # rad/s, roll-gyro bias
+    bq=1,  # rad/s, pitch-gyro bias
+    br=1,  # rad/s, yaw-gyro bias
+    bay=1,  # m/s^2, lateral accelerometer bias
+    vy=1,  # m/s
+    rejected=1,  # 1 if this cycle's lateral-force innovation was gated out
+    heading=1,  # rad, wrapped to (-pi, pi]
+    # the stage's (attitude_stage), not the filter's:
+    ok=1,  # 1: the filter is initialised and every output above is finite
+    rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
+)
+(
+    OUT_ROLL,
+    OUT_ROLL_RATE,
+    OUT_YAW_RATE,
+    OUT_ROLL_SD,
+    OUT_BP,
+    OUT_BQ,
+    OUT_BR,
+    OUT_BAY,
+    OUT_VY,
+    OUT_REJECTED,
+    OUT_HEADING,
+    OUT_OK,
+    OUT_REJECTED_RUN,
+) = OUTPUTS.offsets
+N_FILTER_OUT = OUT_HEADING + 1  # what `attitude_step` writes
+OUT_SIZE = OUTPUTS.size
 
 
 def new_state() -> np.ndarray:
@@ -122,7 +189,9 @@ def attitude_params(
     tuning,
     gps_latency: float,
 ) -> np.ndarray:
-    """The parameter vector from the config's `estimator.attitude` section (`AttitudeTuning`)."""
+    """The parameter vector from the config's `estimator.attitude` section (`AttitudeTuning`).
+
+    The stage's own entries (A_CAL_*) stay 0 (never standing still): `build_params` sets them."""
     prm = np.zeros(PARAM_SIZE)
     prm[A_DT] = dt
     prm[A_G] = g
@@ -277,7 +346,7 @@ def attitude_step(
 
     if st[ST_INIT] != 1.0:
         if not (rates_ok and accel_ok):
-            for k in range(OUT_SIZE):
+            for k in range(N_FILTER_OUT):
                 out[k] = 0.0
             return
         # roll from gravity alone (at rest or riding straight; a turn is corrected within seconds)
@@ -461,3 +530,79 @@ def attitude_step(
     out[OUT_VY] = x[X_VY]
     out[OUT_REJECTED] = rejected
     out[OUT_HEADING] = _wrap(x[X_PSI])
+
+
+# ---- the estimator's stage: the filter with its inputs from the inputs and speed stages ----
+
+
+def build_params(settings, design) -> np.ndarray:
+    sens = settings.sensors
+    prm = attitude_params(
+        float(design.sample_time),
+        settings.vehicle.g,
+        sens.imu_height,
+        sens.imu_forward,
+        settings.estimator.attitude,
+        sens.gps_latency,
+    )
+    prm[A_CAL_SPEED] = sens.gyro_calibration_speed
+    prm[A_CAL_MAX_RATE] = sens.gyro_calibration_max_rate
+    return prm
+
+
+@njit(cache=True)
+def _all_finite(v: np.ndarray, n: int) -> bool:
+    for i in range(n):
+        if not math.isfinite(v[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.ndarray, speed: np.ndarray) -> None:
+    """One cycle from the inputs and speed stages' outputs: standstill detection (the gyros then read their
+    biases), the speed's uncertainty (the speed filter dead-reckons on the accelerometer in a GPS dropout),
+    the GPS course, and whether the filter's outputs can be used (OUT_OK)."""
+    raw = inputs[inp.OUT_RAW : inp.OUT_RAW + inp.N_RAW]
+    u = speed[spd.OUT_U]
+    speed_known = speed[spd.OUT_KNOWN] != 0.0
+    reasons_now = int(inputs[inp.OUT_REASONS])
+    standstill = (
+        speed_known
+        and inputs[inp.OUT_GPS_LOST] == 0.0
+        and u < prm[A_CAL_SPEED]
+        and reasons_now & ~REASON_SPEED_LOW == 0
+        and abs(raw[inp.RAW_P] - st[ST_X + X_BP]) < prm[A_CAL_MAX_RATE]
+        and abs(raw[inp.RAW_R] - st[ST_X + X_BR]) < prm[A_CAL_MAX_RATE]
+    )
+    speed_sd = 0.1 + 0.5 * min(inputs[inp.OUT_GPS_AGE], 10.0)
+    attitude_step(
+        st,
+        out,
+        prm,
+        raw[inp.RAW_P],
+        raw[inp.RAW_Q],
+        raw[inp.RAW_R],
+        raw[inp.RAW_AY],
+        raw[inp.RAW_AZ],
+        u if speed_known else 0.0,
+        speed_sd if speed_known else 30.0,
+        inputs[inp.OUT_RATES_OK] != 0.0,
+        inputs[inp.OUT_ACCEL_TRUSTED] != 0.0,
+        inputs[inp.OUT_COURSE],
+        inputs[inp.OUT_COURSE_NEW] != 0.0,
+        standstill,
+    )
+    out[OUT_OK] = 1.0 if st[ST_INIT] == 1.0 and _all_finite(out, N_FILTER_OUT) else 0.0
+    out[OUT_REJECTED_RUN] = st[ST_REJECTED]
+
+
+STAGE = Stage(
+    name="attitude",
+    state=STATE,
+    params=PARAMS,
+    outputs=OUTPUTS,
+    build_params=build_params,
+    reset=restart,  # roll and heading again from the data; the sensor biases are kept
+    doc="kinematic EKF: roll, heading, gyro and accelerometer biases, sideslip; standstill and GPS course",
+)

@@ -1,16 +1,23 @@
-"""Sensor conditioning: raw sensor values -> the model's measurements (jitted, allocation-free).
+"""Stage 4, conditioning: raw values -> the model's measurements, and the published roll (jitted).
+
+Helpers (also used by the simulator's tests and the baselines):
 
 - Steering encoder counts -> steer angle, with the calibration zero and wrap-around
   of a 10-bit absolute encoder (1024 counts per revolution).
 - Body-frame IMU -> model frame. The IMU leans with the chassis: with roll phi (and
   negligible pitch) the ground yaw rate is q sin(phi) + r cos(phi), and the
   horizontal lateral acceleration is f_y cos(phi) - f_z sin(phi), which needs no
-  gravity compensation. The roll used is the estimator's own (previous cycle).
-- Forward speed at 100 Hz from 10 Hz GPS and the longitudinal accelerometer: a
-  complementary filter whose GPS correction is applied against the prediction made
-  when the fix was valid (latency compensation through a ring buffer of past
-  predictions). In a GPS dropout the prediction is held (accelerometer only, with a
-  slow decay of the correction) and the caller flags it.
+  gravity compensation.
+
+The stage (`conditioning_stage`) runs after the attitude stage: it takes the attitude filter's roll and
+bias-corrected rates (or, while that filter is not running, the raw gyros de-rolled with the last published
+roll), the steer angle, the rate derivatives through critically damped tracking filters, and moves a_y from
+the IMU to the centre of mass (lever arm: the seed 001 output a_y = (F_yf + F_yr) / M). It also decides whether
+the model-based observers run this cycle (core sensors fresh, speed above the model's validity) and makes the
+published roll: the attitude filter's, carried from the IMU's sample time to the cycle's with the gyro; without
+the attitude filter (IMU missing at start), the gyro integrated and pulled to the kinematic roll atan(u r / g).
+(The forward-speed filter is the `speed` stage, `ptw_rt.core.speed`: the attitude stage between the two needs
+the speed, and this one needs the attitude.)
 """
 
 from __future__ import annotations
@@ -20,15 +27,99 @@ import math
 import numpy as np
 from numba import njit
 
+from ptw_rt.core import attitude as att
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import speed as spd
+from ptw_rt.core.layout import REASON_SPEED_LOW, S_IMU_AGE
+from ptw_rt.core.params import lever_arm_coefficients
+from ptw_rt.core.stage import Layout, Stage
+
 TWO_PI = 2.0 * math.pi
 
-# speed filter state layout
-SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT = 0, 1, 2, 3
-SPD_RING0 = 4
+STATE = Layout(
+    "ST_",
+    init=1,  # 1 once the derivative filters have been started
+    df=4,  # derivative filters: [r_f, r_dot_f, p_f, p_dot_f]
+    roll=1,  # rad, the published roll of the last cycle
+)
+ST_INIT, ST_DF, ST_ROLL = STATE.offsets
+
+PARAMS = Layout(
+    "P_",
+    dt=1,
+    g=1,
+    steer_zero=1,  # encoder count of straight ahead
+    steer_cpr=1,  # encoder counts per revolution
+    deriv_omega=1,  # rad/s of the critically damped derivative filters
+    a_y_r_dot=1,  # lever arm: a_y(CoM) = a_y(IMU) + a_y_r_dot r_dot + a_y_phi_ddot phi_ddot
+    a_y_phi_ddot=1,
+    min_speed=1,  # m/s: below, the model-based observers are held in reset
+    fusion_rate=1,  # 1/s: pull of the fallback roll to the kinematic roll
+    max_roll=1,  # rad: a published roll beyond is a divergence
+)
+(
+    P_DT,
+    P_G,
+    P_STEER_ZERO,
+    P_STEER_CPR,
+    P_DERIV_OMEGA,
+    P_A_Y_R_DOT,
+    P_A_Y_PHI_DDOT,
+    P_MIN_SPEED,
+    P_FUSION_RATE,
+    P_MAX_ROLL,
+) = PARAMS.offsets
+
+OUTPUTS = Layout(
+    "OUT_",
+    deroll=1,  # rad: the roll this cycle's measurements are de-rolled with (attitude filter's, else last published)
+    roll_rate=1,  # rad/s: bias-corrected by the attitude filter (raw while it is not running)
+    yaw_rate=1,  # rad/s: ground yaw rate, likewise
+    steer=1,  # rad
+    a_y=1,  # m/s^2: lateral acceleration of the centre of mass in the road plane
+    yaw_accel=1,  # rad/s^2: filtered derivative of yaw_rate
+    roll_accel=1,  # rad/s^2: filtered derivative of roll_rate
+    speed_low=1,  # 1: speed unknown or below the model's validity
+    run=1,  # 1: the model-based observers run this cycle (core sensors fresh, speed valid)
+    reasons=1,  # REASON_* bits of the cycle's conditions: the inputs' and SPEED_LOW
+    roll_kin=1,  # rad: kinematic roll atan(u r / g)
+    roll=1,  # rad: the published roll, at the cycle's time
+    roll_last=1,  # rad: the published roll of the last cycle
+    diverged=1,  # 1: the roll was implausible and replaced (an observer-reset event for the supervisor)
+)
+(
+    OUT_DEROLL,
+    OUT_ROLL_RATE,
+    OUT_YAW_RATE,
+    OUT_STEER,
+    OUT_A_Y,
+    OUT_YAW_ACCEL,
+    OUT_ROLL_ACCEL,
+    OUT_SPEED_LOW,
+    OUT_RUN,
+    OUT_REASONS,
+    OUT_ROLL_KIN,
+    OUT_ROLL,
+    OUT_ROLL_LAST,
+    OUT_DIVERGED,
+) = OUTPUTS.offsets
 
 
-def new_speed_state(latency_samples: int) -> np.ndarray:
-    return np.zeros(SPD_RING0 + max(1, latency_samples) + 1)
+def build_params(settings, design) -> np.ndarray:
+    est, sens, veh = settings.estimator, settings.sensors, settings.vehicle
+    lever = lever_arm_coefficients(veh, sens.imu_forward, sens.imu_height)
+    return PARAMS.vector(
+        dt=float(design.sample_time),
+        g=veh.g,
+        steer_zero=sens.steer_zero_count,
+        steer_cpr=sens.steer_counts_per_rev,
+        deriv_omega=2.0 * math.pi * est.derivative_filter_hz,
+        a_y_r_dot=lever[0],
+        a_y_phi_ddot=lever[1],
+        min_speed=design.min_valid_speed,
+        fusion_rate=1.0 / est.roll_fusion_time_constant,
+        max_roll=est.max_roll,
+    )
 
 
 @njit(cache=True)
@@ -58,49 +149,102 @@ def kinematic_roll(speed: float, yaw_rate_ground: float, g: float) -> float:
 
 
 @njit(cache=True)
-def speed_step(
-    state: np.ndarray,
-    accel_x: float,
-    gps_speed: float,
-    gps_new: bool,
-    gps_ok: bool,
-    dt: float,
-    gain: float,
-    bias_gain: float,
-    latency_samples: int,
-) -> float:
-    """One 10 ms step of the speed filter; returns the speed estimate [m/s] (never negative).
+def _finite_or(value: float, fallback: float) -> float:
+    return value if math.isfinite(value) else fallback
 
-    `gps_new` marks a fix that arrived this cycle; `gps_ok` that it is usable (2D/3D fix).
-    The fix describes the speed `latency_samples` cycles ago: the innovation is taken
-    against the prediction stored then and applied to the present estimate.
-    """
-    n_ring = state.shape[0] - SPD_RING0
-    if state[SPD_INIT] == 0.0:
-        if not (gps_new and gps_ok and math.isfinite(gps_speed)):
-            return 0.0
-        state[SPD_U] = gps_speed
-        state[SPD_BIAS] = 0.0
-        for k in range(n_ring):
-            state[SPD_RING0 + k] = gps_speed
-        state[SPD_INIT] = 1.0
-    a = accel_x if math.isfinite(accel_x) else 0.0
-    u = state[SPD_U] + (a - state[SPD_BIAS]) * dt
-    head = int(state[SPD_HEAD])
-    if gps_new and gps_ok and math.isfinite(gps_speed):
-        lag = min(latency_samples, n_ring - 1)
-        past = state[SPD_RING0 + (head - lag) % n_ring]
-        innovation = gps_speed - past
-        u += gain * innovation
-        # an accelerometer bias shows up as a persistent innovation of one sign
-        state[SPD_BIAS] -= bias_gain * innovation
-        # shift the stored predictions too, so the next fix is compared like with like
-        for k in range(n_ring):
-            state[SPD_RING0 + k] += gain * innovation
-    if u < 0.0:
-        u = 0.0
-    head = (head + 1) % n_ring
-    state[SPD_RING0 + head] = u
-    state[SPD_HEAD] = head
-    state[SPD_U] = u
-    return u
+
+@njit(cache=True)
+def derivative_filter(z: np.ndarray, k: int, y: float, omega: float, dt: float) -> float:
+    """Critically damped 2nd-order tracking filter, exact ZOH; returns the filtered derivative of y."""
+    a = omega * dt
+    e = math.exp(-a)
+    x0 = z[k] - y
+    x1 = z[k + 1]
+    z[k] = y + e * ((1.0 + a) * x0 + dt * x1)
+    z[k + 1] = e * (-omega * omega * dt * x0 + (1.0 - a) * x1)
+    return z[k + 1]
+
+
+@njit(cache=True)
+def conditioning_stage(
+    sample: np.ndarray,
+    st: np.ndarray,
+    prm: np.ndarray,
+    out: np.ndarray,
+    inputs: np.ndarray,
+    speed: np.ndarray,
+    attitude: np.ndarray,
+) -> None:
+    """One cycle from the inputs, speed and attitude stages' outputs (and the Sample's IMU age)."""
+    dt = prm[P_DT]
+    raw = inputs[inp.OUT_RAW : inp.OUT_RAW + inp.N_RAW]
+    u = speed[spd.OUT_U]
+    attitude_ok = attitude[att.OUT_OK] != 0.0
+    if attitude_ok:
+        roll_prev = attitude[att.OUT_ROLL]
+        p_rate = attitude[att.OUT_ROLL_RATE]
+        r_ground = attitude[att.OUT_YAW_RATE]
+    else:
+        roll_prev = st[ST_ROLL]
+        p_rate = raw[inp.RAW_P]
+        r_ground = ground_yaw_rate(raw[inp.RAW_Q], raw[inp.RAW_R], roll_prev)
+    delta = steer_angle(raw[inp.RAW_STEER], prm[P_STEER_ZERO], prm[P_STEER_CPR])
+    a_y_imu = horizontal_lateral_accel(raw[inp.RAW_AY] - attitude[att.OUT_BAY], raw[inp.RAW_AZ], roll_prev)
+    if st[ST_INIT] == 0.0:
+        st[ST_DF + 0] = r_ground
+        st[ST_DF + 2] = p_rate
+    r_dot = derivative_filter(st, ST_DF + 0, r_ground, prm[P_DERIV_OMEGA], dt)
+    p_dot = derivative_filter(st, ST_DF + 2, p_rate, prm[P_DERIV_OMEGA], dt)
+    a_y = a_y_imu + prm[P_A_Y_R_DOT] * r_dot + prm[P_A_Y_PHI_DDOT] * p_dot
+    st[ST_INIT] = 1.0
+
+    speed_low = speed[spd.OUT_KNOWN] == 0.0 or u < prm[P_MIN_SPEED]
+    reasons = int(inputs[inp.OUT_REASONS])
+    if speed_low:
+        reasons |= REASON_SPEED_LOW
+    run = inputs[inp.OUT_CORE_OK] != 0.0 and not speed_low
+
+    # the published roll: the attitude filter's at every speed (kinematics do not depend on the tyres); without
+    # it (IMU missing at start), the gyro integrated and pulled to the kinematic roll
+    roll_kin = kinematic_roll(u, r_ground, prm[P_G])
+    if attitude_ok:
+        # the attitude filter's roll is that of the IMU's sample time: carry it to the cycle's time with the
+        # gyro (the sample is up to one cycle old; bounded so a stale stamp cannot extrapolate far)
+        age = min(max(sample[S_IMU_AGE], 0.0), 2.0 * dt) if math.isfinite(sample[S_IMU_AGE]) else 0.0
+        roll = roll_prev + p_rate * age
+    else:
+        roll = st[ST_ROLL] + dt * p_rate
+        pull = 1.0 - math.exp(-prm[P_FUSION_RATE] * dt)
+        roll += pull * (roll_kin - roll)
+    diverged = False
+    if not math.isfinite(roll) or abs(roll) > prm[P_MAX_ROLL]:
+        roll = _finite_or(roll_kin, 0.0)
+        if abs(roll) > prm[P_MAX_ROLL]:
+            roll = 0.0
+        diverged = True
+    out[OUT_ROLL_LAST] = st[ST_ROLL]
+    st[ST_ROLL] = roll
+
+    out[OUT_DEROLL] = roll_prev
+    out[OUT_ROLL_RATE] = p_rate
+    out[OUT_YAW_RATE] = r_ground
+    out[OUT_STEER] = delta
+    out[OUT_A_Y] = a_y
+    out[OUT_YAW_ACCEL] = r_dot
+    out[OUT_ROLL_ACCEL] = p_dot
+    out[OUT_SPEED_LOW] = 1.0 if speed_low else 0.0
+    out[OUT_RUN] = 1.0 if run else 0.0
+    out[OUT_REASONS] = reasons
+    out[OUT_ROLL_KIN] = roll_kin
+    out[OUT_ROLL] = roll
+    out[OUT_DIVERGED] = 1.0 if diverged else 0.0
+
+
+STAGE = Stage(
+    name="conditioning",
+    state=STATE,
+    params=PARAMS,
+    outputs=OUTPUTS,
+    build_params=build_params,
+    doc="steer angle, roll/yaw rates and their derivatives, a_y at the CoM, observers on/off, the published roll",
+)

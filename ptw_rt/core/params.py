@@ -1,13 +1,14 @@
-"""Config + design file -> the estimator's parameter vector: the one place tuning becomes numbers."""
+"""Coefficients derived from the vehicle parameters that the stages' parameter builders use.
+
+Each stage builds its own parameter vector next to its layout (`build_params(settings, design)` in
+`ptw_rt.core.inputs`, `speed`, `attitude`, `conditioning`, `diagnostics`, `kalman`, `adaptive`,
+`supervisor`); what they share from the vehicle's geometry is here. Imports no stage.
+"""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from ptw_rt.core import estimator as est_layout
-from ptw_rt.core.force_observers import lateral_yaw_constants
 from ptw_rt.model.sharp import descriptor
 
 # rows of the Sharp descriptor model (state order [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr])
@@ -45,54 +46,3 @@ def lever_arm_coefficients(vehicle, imu_forward: float, imu_height: float) -> tu
     k_cm = vehicle.mfk / m
     h_cm = vehicle.roll_moment / m
     return k_cm - imu_forward, h_cm - imu_height
-
-
-def build_params(settings, design) -> np.ndarray:
-    est = settings.estimator
-    sens = settings.sensors
-    veh = settings.vehicle
-    dt = float(design.sample_time)
-    prm = np.zeros(est_layout.PARAM_SIZE)
-    prm[est_layout.P_DT] = dt
-    prm[est_layout.P_DIFF_L] = design.uh_differentiator_lambda
-    prm[est_layout.P_G] = veh.g
-    prm[est_layout.P_MIN_SPEED] = design.min_valid_speed
-    prm[est_layout.P_STEER_ZERO] = sens.steer_zero_count
-    prm[est_layout.P_STEER_CPR] = sens.steer_counts_per_rev
-    prm[est_layout.P_SPEED_GAIN] = sens.speed_filter_gain
-    prm[est_layout.P_SPEED_BIAS_GAIN] = sens.speed_bias_gain
-    prm[est_layout.P_LATENCY_SAMPLES] = round(sens.gps_latency / dt)
-    prm[est_layout.P_FUSION_RATE] = 1.0 / est.roll_fusion_time_constant
-    prm[est_layout.P_CAL_SPEED] = sens.gyro_calibration_speed
-    prm[est_layout.P_CAL_GAIN] = 1.0 - math.exp(-dt / sens.gyro_calibration_time_constant)
-    prm[est_layout.P_CAL_MAX_RATE] = sens.gyro_calibration_max_rate
-    prm[est_layout.P_DERIV_OMEGA] = 2.0 * math.pi * est.derivative_filter_hz
-    prm[est_layout.P_CONVERGE_TIME] = est.converge_time
-    prm[est_layout.P_GPS_HOLD] = est.gps_hold_time
-    prm[est_layout.P_REASON_HOLD] = est.reason_hold_time
-    prm[est_layout.P_STIFF_VALID_AFTER] = est.stiffness_valid_after
-    prm[est_layout.P_MAX_ROLL] = est.max_roll
-    prm[est_layout.P_MAX_TORQUE] = est.max_rider_torque
-    prm[est_layout.P_MAX_FORCE] = est.max_tyre_force
-    prm[est_layout.P_MAX_LAT_VEL] = est.max_lateral_velocity
-    lever = lever_arm_coefficients(veh, sens.imu_forward, sens.imu_height)
-    prm[est_layout.P_A_Y_R_DOT], prm[est_layout.P_A_Y_PHI_DDOT] = lever
-    ya = virtual_output_coefficients(veh)
-    prm[est_layout.P_YA_R_DOT], prm[est_layout.P_YA_PHI_DDOT] = ya[0], ya[1]
-    prm[est_layout.P_YA_PHI_DOT], prm[est_layout.P_YA_DELTA_DOT] = ya[2], ya[3]
-    prm[est_layout.P_DIFF_SUBSTEPS] = 1
-    prm[est_layout.P_PE_FORGETTING] = design.ad_pe_forgetting
-    prm[est_layout.P_MAX_RATE] = est.max_abs_rate
-    prm[est_layout.P_MAX_ACCEL] = est.max_abs_accel
-    prm[est_layout.P_MAX_GPS_SPEED] = est.max_gps_speed
-    prm[est_layout.P_STIFF_MAX_RESIDUAL] = est.stiffness_max_residual
-    prm[est_layout.P_ADAPT_MAX_RESIDUAL] = est.adaptation_max_residual
-    prm[est_layout.P_ROLL_TOLERANCE] = math.radians(est.roll_tolerance_deg)
-    # 3 rad/s of steer rate (the contract's range) at most, in encoder counts per cycle, with one count of margin
-    prm[est_layout.P_MAX_STEER_STEP] = 3.0 * dt * sens.steer_counts_per_rev / (2.0 * math.pi) + 1.0
-    prm[est_layout.P_STEER_RESYNC] = 10
-    prm[est_layout.P_STA_LC_R] = est.force_observer_yaw_bound
-    prm[est_layout.P_STA_LC_W] = est.force_observer_lateral_bound
-    prm[est_layout.P_GEOM : est_layout.P_GEOM + 4] = lateral_yaw_constants(veh)
-
-    return prm

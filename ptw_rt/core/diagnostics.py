@@ -1,0 +1,219 @@
+"""Stage 5, the seed observers as diagnostics: UIHOSMO (seed 000) and the super-twisting force observer (seed 003).
+
+Neither is published: the UIHOSMO's roll and rider torque (unknown inputs reconstructed from the second and
+third derivatives of the steer-angle error, `ptw_rt.core.uihosmo`; with the contract's 10-bit encoder they are
+mostly quantisation, docs/estimator.md) and the super-twisting observer's tyre forces from (u, r, a_y) alone
+(`ptw_rt.core.force_observers.sta_step`) are cross-checks in the diagnostics of the Estimates record.
+
+Both run only while the model-based observers run (conditioning's OUT_RUN; the force observer also needs the
+accelerometer). A UIHOSMO that blows up (non-finite, or roll or torque beyond the limits) is reset and the
+event is an output (OUT_RESET): the supervisor raises REASON_DIVERGING, and the lateral stage restarts the
+observers' convergence clock and the stiffness stage its adaptive observer (the monolithic step did so;
+kept, bit for bit).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ptw_rt.core import conditioning as cnd
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import speed as spd
+from ptw_rt.core import uihosmo as uh
+from ptw_rt.core.force_observers import STA_STATE_SIZE, lateral_yaw_constants, sta_step
+from ptw_rt.core.stage import Layout, Stage, v1, v3
+
+STATE = Layout(
+    "ST_",
+    uh=uh.STATE_SIZE,  # the UIHOSMO's state (ptw_rt.core.uihosmo layout)
+    sta=STA_STATE_SIZE,  # the super-twisting observer's state
+    uh_tmp=24,  # the UIHOSMO's scratch
+)
+ST_UH, ST_STA, ST_UH_TMP = STATE.offsets
+
+PARAMS = Layout(
+    "P_",
+    dt=1,
+    diff_l=1,  # Lipschitz constant L of the differentiators
+    diff_substeps=1,
+    max_roll=1,  # rad: beyond, the UIHOSMO has diverged
+    max_torque=1,  # N m: likewise
+    sta_lc_r=1,  # bound on |d/dt (M_z / I_z)| [rad/s^3]
+    sta_lc_w=1,  # bound on |d a_y / dt| [m/s^3]
+    geom=4,  # [M, I_z, a_f, a_r] of the CoM-referred lateral/yaw sub-model
+)
+P_DT, P_DIFF_L, P_DIFF_SUBSTEPS, P_MAX_ROLL, P_MAX_TORQUE, P_STA_LC_R, P_STA_LC_W, P_GEOM = PARAMS.offsets
+
+OUTPUTS = Layout(
+    "OUT_",
+    uh=uh.OUT_SIZE,  # the UIHOSMO's reconstruction (ptw_rt.core.uihosmo OUT layout)
+    roll=1,  # rad, the UIHOSMO's roll (0 while not running)
+    torque=1,  # N m, the UIHOSMO's rider torque
+    fy_front=1,  # N, the super-twisting observer's tyre forces (0 while not running)
+    fy_rear=1,
+    reset=1,  # 1: the UIHOSMO diverged this cycle and was reset
+)
+OUT_UH, OUT_ROLL, OUT_TORQUE, OUT_FY_FRONT, OUT_FY_REAR, OUT_RESET = OUTPUTS.offsets
+
+# design tables, in the order `diagnostics_stage` reads them from its first table row
+TABLES = (
+    ("grid", 1),
+    ("uh_Phi", 3),
+    ("uh_Gamma", 3),
+    ("uh_T_inv", 3),
+    ("uh_Abar", 3),
+    ("uh_Dbar_inv", 3),
+    ("uh_Phi22", 3),
+    ("uh_Gamma21", 3),
+    ("uh_Ramp_y", 3),
+    ("uh_Ramp21", 3),
+    ("lam_steer", 1),
+    ("lam_yaw", 1),
+)
+(
+    T_GRID,
+    T_PHI,
+    T_GAMMA,
+    T_T_INV,
+    T_ABAR,
+    T_DBAR_INV,
+    T_PHI22,
+    T_GAMMA21,
+    T_RAMP_Y,
+    T_RAMP21,
+    T_LAM_STEER,
+    T_LAM_YAW,
+) = range(len(TABLES))
+
+
+def build_params(settings, design) -> np.ndarray:
+    est = settings.estimator
+    return PARAMS.vector(
+        dt=float(design.sample_time),
+        diff_l=design.uh_differentiator_lambda,
+        diff_substeps=1,
+        max_roll=est.max_roll,
+        max_torque=est.max_rider_torque,
+        sta_lc_r=est.force_observer_yaw_bound,
+        sta_lc_w=est.force_observer_lateral_bound,
+        geom=lateral_yaw_constants(settings.vehicle),
+    )
+
+
+@njit(cache=True)
+def _all_finite(v: np.ndarray, n: int) -> bool:
+    for i in range(n):
+        if not math.isfinite(v[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def diagnostics_stage(
+    st: np.ndarray,
+    prm: np.ndarray,
+    out: np.ndarray,
+    tables: np.ndarray,
+    tindex: np.ndarray,
+    t0: int,
+    inputs: np.ndarray,
+    speed: np.ndarray,
+    cond: np.ndarray,
+) -> None:
+    """One cycle. ``tables``/``tindex``: a packed buffer holding TABLES in order from row ``t0``."""
+    dt = prm[P_DT]
+    run = cond[cnd.OUT_RUN] != 0.0
+    u = speed[spd.OUT_U]
+    delta = cond[cnd.OUT_STEER]
+    r_ground = cond[cnd.OUT_YAW_RATE]
+    uh_state = st[ST_UH : ST_UH + uh.STATE_SIZE]
+    uh_out = out[OUT_UH : OUT_UH + uh.OUT_SIZE]
+    if not run:
+        uh_state[uh.INIT] = 0.0
+    roll_uio = 0.0
+    tau_uio = 0.0
+    reset = False
+    if run:
+        uh.uihosmo_step(
+            uh_state,
+            uh_out,
+            st[ST_UH_TMP : ST_UH_TMP + 24],
+            delta,
+            r_ground,
+            u,
+            dt,
+            prm[P_DIFF_L],
+            v1(tables, tindex, t0 + T_GRID),
+            v3(tables, tindex, t0 + T_PHI),
+            v3(tables, tindex, t0 + T_GAMMA),
+            v3(tables, tindex, t0 + T_T_INV),
+            v3(tables, tindex, t0 + T_ABAR),
+            v3(tables, tindex, t0 + T_DBAR_INV),
+            v3(tables, tindex, t0 + T_PHI22),
+            v3(tables, tindex, t0 + T_GAMMA21),
+            v3(tables, tindex, t0 + T_RAMP_Y),
+            v3(tables, tindex, t0 + T_RAMP21),
+            v1(tables, tindex, t0 + T_LAM_STEER),
+            v1(tables, tindex, t0 + T_LAM_YAW),
+            int(prm[P_DIFF_SUBSTEPS]),
+        )
+        roll_uio = uh_out[uh.OUT_PHI]
+        tau_uio = uh_out[uh.OUT_TAU]
+        if (
+            not _all_finite(uh_out, uh.OUT_SIZE)
+            or not _all_finite(uh_state, uh.STATE_SIZE)
+            or abs(roll_uio) > prm[P_MAX_ROLL]
+            or abs(tau_uio) > prm[P_MAX_TORQUE]
+        ):
+            uh_state[uh.INIT] = 0.0
+            reset = True
+            roll_uio = cond[cnd.OUT_ROLL_LAST]
+            tau_uio = 0.0
+            for k in range(uh.OUT_SIZE):
+                uh_out[k] = 0.0
+            uh_out[uh.X_DELTA] = delta
+            uh_out[uh.X_R] = r_ground
+
+    # tyre forces: seed 003's super-twisting observer on the lateral/yaw sub-model, from (u, r, a_y) only
+    forces = out[OUT_FY_FRONT : OUT_FY_REAR + 1]
+    forces[0] = 0.0
+    forces[1] = 0.0
+    sta = st[ST_STA : ST_STA + STA_STATE_SIZE]
+    if run and inputs[inp.OUT_ACCEL_OK] != 0.0:
+        sta_step(
+            sta,
+            forces,
+            u,
+            r_ground,
+            cond[cnd.OUT_A_Y],
+            dt,
+            prm[P_GEOM : P_GEOM + 4],
+            prm[P_STA_LC_R],
+            prm[P_STA_LC_W],
+        )
+        if not (math.isfinite(forces[0]) and math.isfinite(forces[1])):
+            for k in range(STA_STATE_SIZE):
+                sta[k] = 0.0
+            forces[0] = 0.0
+            forces[1] = 0.0
+    else:
+        for k in range(STA_STATE_SIZE):
+            sta[k] = 0.0
+    out[OUT_ROLL] = roll_uio
+    out[OUT_TORQUE] = tau_uio
+    out[OUT_RESET] = 1.0 if reset else 0.0
+
+
+STAGE = Stage(
+    name="diagnostics",
+    state=STATE,
+    params=PARAMS,
+    outputs=OUTPUTS,
+    build_params=build_params,
+    tables=TABLES,
+    constants={"lam_steer": uh.LAMBDA_STEER, "lam_yaw": uh.LAMBDA_YAW},
+    doc="seed 000's UIHOSMO (roll, rider torque) and seed 003's super-twisting tyre forces, unpublished",
+)

@@ -1,0 +1,219 @@
+"""Stage 1, inputs: plausibility and hold of the raw sensor values of one Sample (jitted, allocation-free).
+
+A non-finite or implausible value (beyond the configured limits) is replaced by the last good one and flagged
+(REASON_OUT_OF_RANGE); a stale message, or one whose rolling counter broke this cycle (S_SUSPECT: its payload
+may be garbage), is held; a steer-encoder jump larger than the steering can turn in one cycle is a corrupt
+frame and held, unless it persists for ``steer_resync`` cycles (then the encoder really is there, e.g. after
+a long silence). GPS: a new fix with at least a 2D solution is usable; its age decides GPS_LOST.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ptw_rt.core.layout import (
+    MSG_GPS,
+    MSG_IMU_ACCEL,
+    MSG_IMU_RATES,
+    MSG_STEER,
+    REASON_GPS_LOST,
+    REASON_OUT_OF_RANGE,
+    REASON_STALE,
+    S_ACCEL_X,
+    S_ACCEL_Y,
+    S_ACCEL_Z,
+    S_FRESH,
+    S_GPS_COURSE,
+    S_GPS_FIX,
+    S_GPS_SPEED,
+    S_INPUT_REASONS,
+    S_PITCH_RATE_BODY,
+    S_ROLL_RATE_BODY,
+    S_STALE,
+    S_STEER_COUNT,
+    S_SUSPECT,
+    S_YAW_RATE_BODY,
+)
+from ptw_rt.core.stage import Layout, Stage
+
+N_REASON_BITS = 16  # EST_Status.ReasonBits
+REASON_MASK = (1 << N_REASON_BITS) - 1
+REASON_OTHER = 1 << N_REASON_BITS  # in OUT_REASONS: the edge's reason field had bits beyond the 16 (garbage)
+
+# the raw values, in this order (outputs RAW + k and state LAST + k)
+RAW_P, RAW_Q, RAW_R, RAW_AX, RAW_AY, RAW_AZ, RAW_STEER, RAW_GPS_SPEED = range(8)
+N_RAW = 8
+
+STATE = Layout(
+    "ST_",
+    last=N_RAW,  # last good raw values
+    steer_jumps=1,  # consecutive implausible steer-encoder jumps
+    gps_age=1,  # s since the last usable GPS fix
+    init=1,  # 1 once a sample has been seen
+)
+ST_LAST, ST_STEER_JUMPS, ST_GPS_AGE, ST_INIT = STATE.offsets
+
+PARAMS = Layout(
+    "P_",
+    dt=1,
+    max_rate=1,  # rad/s: plausibility limit of the gyros
+    max_accel=1,  # m/s^2: ... of the accelerometer
+    steer_cpr=1,  # encoder counts per revolution (also the limit of a count)
+    max_gps_speed=1,  # m/s
+    max_steer_step=1,  # counts per cycle: a larger jump of the encoder is not a steering motion
+    steer_resync=1,  # cycles: after this many implausible jumps in a row the encoder's value is taken as the truth
+    gps_hold=1,  # s without a usable fix before GPS_LOST
+)
+P_DT, P_MAX_RATE, P_MAX_ACCEL, P_STEER_CPR, P_MAX_GPS_SPEED, P_MAX_STEER_STEP, P_STEER_RESYNC, P_GPS_HOLD = (
+    PARAMS.offsets
+)
+
+OUTPUTS = Layout(
+    "OUT_",
+    raw=N_RAW,  # held and checked raw values: p, q, r [rad/s], ax, ay, az [m/s^2], steer count, GPS speed [m/s]
+    reasons=1,  # REASON_* bits of this cycle's inputs (edge's, out of range, stale, GPS lost); REASON_OTHER
+    core_ok=1,  # 1: IMU rates and steer encoder not stale
+    accel_ok=1,  # 1: accelerometer not stale
+    accel_trusted=1,  # 1: this cycle's accelerometer values are new and sound (not held)
+    rates_ok=1,  # 1: this cycle's rates are new and sound
+    gps_ok=1,  # 1: a usable GPS fix arrived this cycle
+    gps_lost=1,  # 1: no usable fix for longer than gps_hold
+    gps_age=1,  # s since the last usable fix
+    course=1,  # rad, GPS course over ground wrapped to (-pi, pi] (0 when course_new is 0)
+    course_new=1,  # 1: a usable course arrived this cycle
+)
+(
+    OUT_RAW,
+    OUT_REASONS,
+    OUT_CORE_OK,
+    OUT_ACCEL_OK,
+    OUT_ACCEL_TRUSTED,
+    OUT_RATES_OK,
+    OUT_GPS_OK,
+    OUT_GPS_LOST,
+    OUT_GPS_AGE,
+    OUT_COURSE,
+    OUT_COURSE_NEW,
+) = OUTPUTS.offsets
+
+
+def build_params(settings, design) -> np.ndarray:
+    est, sens = settings.estimator, settings.sensors
+    dt = float(design.sample_time)
+    return PARAMS.vector(
+        dt=dt,
+        max_rate=est.max_abs_rate,
+        max_accel=est.max_abs_accel,
+        steer_cpr=sens.steer_counts_per_rev,
+        max_gps_speed=est.max_gps_speed,
+        # 3 rad/s of steer rate (the contract's range) at most, in encoder counts per cycle, one count of margin
+        max_steer_step=3.0 * dt * sens.steer_counts_per_rev / (2.0 * math.pi) + 1.0,
+        steer_resync=10,
+        gps_hold=est.gps_hold_time,
+    )
+
+
+@njit(cache=True)
+def _wrap_pi(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True)
+def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.ndarray) -> None:
+    """One cycle: `sample` (ptw_rt.core.layout) -> OUTPUTS."""
+    dt = prm[P_DT]
+    fresh = int(sample[S_FRESH])
+    stale = int(sample[S_STALE])
+    reasons_now = int(sample[S_INPUT_REASONS])
+    raw = out[OUT_RAW : OUT_RAW + N_RAW]
+    src = (
+        S_ROLL_RATE_BODY,
+        S_PITCH_RATE_BODY,
+        S_YAW_RATE_BODY,
+        S_ACCEL_X,
+        S_ACCEL_Y,
+        S_ACCEL_Z,
+        S_STEER_COUNT,
+        S_GPS_SPEED,
+    )
+    for k in range(N_RAW):
+        v = sample[src[k]]
+        if k < 3:
+            limit = prm[P_MAX_RATE]
+        elif k < 6:
+            limit = prm[P_MAX_ACCEL]
+        elif k == 6:
+            limit = prm[P_STEER_CPR]
+        else:
+            limit = prm[P_MAX_GPS_SPEED]
+        plausible = math.isfinite(v) and abs(v) <= limit and (k < 6 or v >= 0.0)
+        if plausible:
+            raw[k] = v
+        else:
+            raw[k] = st[ST_LAST + k]
+            reasons_now |= REASON_OUT_OF_RANGE
+    # a stale message, or one whose rolling counter broke this cycle (its payload may be garbage): held
+    held = stale | int(sample[S_SUSPECT])
+    if held & MSG_IMU_RATES:
+        for k in range(3):
+            raw[k] = st[ST_LAST + k]
+    if held & MSG_IMU_ACCEL:
+        for k in range(3, 6):
+            raw[k] = st[ST_LAST + k]
+    if held & MSG_STEER:
+        raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
+    elif st[ST_INIT] != 0.0:
+        # the steering cannot turn more than max_steer_step counts in one cycle; a bigger jump is a corrupt
+        # frame (unless it persists: then the encoder really is there, e.g. after a long silence)
+        jump = abs(raw[RAW_STEER] - st[ST_LAST + RAW_STEER])
+        jump = min(jump, prm[P_STEER_CPR] - jump)  # across the wrap
+        if jump > prm[P_MAX_STEER_STEP] and st[ST_STEER_JUMPS] < prm[P_STEER_RESYNC]:
+            st[ST_STEER_JUMPS] += 1.0
+            raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
+            reasons_now |= REASON_OUT_OF_RANGE
+        else:
+            st[ST_STEER_JUMPS] = 0.0
+    for k in range(N_RAW):
+        st[ST_LAST + k] = raw[k]
+    if stale != 0:
+        reasons_now |= REASON_STALE
+
+    gps_fix = sample[S_GPS_FIX]
+    gps_new = (fresh & MSG_GPS) != 0 and (stale & MSG_GPS) == 0
+    gps_ok = gps_new and gps_fix >= 2.0 and math.isfinite(sample[S_GPS_SPEED])
+    if gps_ok:
+        st[ST_GPS_AGE] = 0.0
+    else:
+        st[ST_GPS_AGE] += dt
+    gps_lost = st[ST_GPS_AGE] > prm[P_GPS_HOLD]
+    if gps_lost:
+        reasons_now |= REASON_GPS_LOST
+    course_new = gps_ok and sample[S_GPS_FIX] >= 2.0 and math.isfinite(sample[S_GPS_COURSE])
+    course = math.radians(sample[S_GPS_COURSE]) if course_new else 0.0
+    st[ST_INIT] = 1.0
+
+    # 16 REASON_* bits, and bit 16 for anything beyond them in the edge's field (only garbage can set those):
+    # exact in a float64 whatever came in, and still "a reason" to the later stages
+    out[OUT_REASONS] = (reasons_now & REASON_MASK) | (REASON_OTHER if reasons_now & ~REASON_MASK else 0)
+    out[OUT_CORE_OK] = 1.0 if (stale & (MSG_IMU_RATES | MSG_STEER)) == 0 else 0.0
+    out[OUT_ACCEL_OK] = 1.0 if (stale & MSG_IMU_ACCEL) == 0 else 0.0
+    out[OUT_ACCEL_TRUSTED] = 1.0 if (held & MSG_IMU_ACCEL) == 0 else 0.0
+    out[OUT_RATES_OK] = 1.0 if (held & MSG_IMU_RATES) == 0 else 0.0
+    out[OUT_GPS_OK] = 1.0 if gps_ok else 0.0
+    out[OUT_GPS_LOST] = 1.0 if gps_lost else 0.0
+    out[OUT_GPS_AGE] = st[ST_GPS_AGE]
+    out[OUT_COURSE] = _wrap_pi(course)
+    out[OUT_COURSE_NEW] = 1.0 if course_new else 0.0
+
+
+STAGE = Stage(
+    name="inputs",
+    state=STATE,
+    params=PARAMS,
+    outputs=OUTPUTS,
+    build_params=build_params,
+    doc="plausibility and hold of the raw values, stale and suspect messages held, steer-encoder jumps, GPS age",
+)

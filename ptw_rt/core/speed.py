@@ -1,0 +1,135 @@
+"""Stage 2, speed: forward speed at 100 Hz from 10 Hz GPS and the longitudinal accelerometer (jitted).
+
+A complementary filter whose GPS correction is applied against the prediction made when the fix was valid
+(latency compensation through a ring buffer of past predictions). In a GPS dropout the prediction is held
+(accelerometer only, with a slow decay of the correction) and the inputs stage flags it. It runs before the
+attitude stage, which needs the speed (the lateral specific force has a u r term).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ptw_rt.core import inputs as inp
+from ptw_rt.core.stage import Layout, Stage
+
+# ---- state: the filter's fixed part, then a ring of past predictions (`new_speed_state`: latency + 2 long) ----
+STATE = Layout("SPD_", u=1, bias=1, head=1, init=1, ring0=1)
+SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT, SPD_RING0 = STATE.offsets
+
+PARAMS = Layout(
+    "P_",
+    dt=1,
+    gain=1,  # share of a GPS innovation applied to the speed
+    bias_gain=1,  # ... to the accelerometer bias
+    latency_samples=1,  # GPS latency in cycles
+)
+P_DT, P_GAIN, P_BIAS_GAIN, P_LATENCY_SAMPLES = PARAMS.offsets
+
+OUTPUTS = Layout(
+    "OUT_",
+    u=1,  # m/s, forward speed (0 until the first fix)
+    known=1,  # 1 once the filter has had its first fix
+)
+OUT_U, OUT_KNOWN = OUTPUTS.offsets
+
+
+def new_speed_state(latency_samples: int) -> np.ndarray:
+    return np.zeros(SPD_RING0 + max(1, latency_samples) + 1)
+
+
+def build_params(settings, design) -> np.ndarray:
+    sens = settings.sensors
+    dt = float(design.sample_time)
+    return PARAMS.vector(
+        dt=dt,
+        gain=sens.speed_filter_gain,
+        bias_gain=sens.speed_bias_gain,
+        latency_samples=round(sens.gps_latency / dt),
+    )
+
+
+def _new_state(settings, design) -> np.ndarray:
+    return new_speed_state(int(build_params(settings, design)[P_LATENCY_SAMPLES]))
+
+
+@njit(cache=True)
+def speed_step(
+    state: np.ndarray,
+    accel_x: float,
+    gps_speed: float,
+    gps_new: bool,
+    gps_ok: bool,
+    dt: float,
+    gain: float,
+    bias_gain: float,
+    latency_samples: int,
+) -> float:
+    """One 10 ms step of the speed filter; returns the speed estimate [m/s] (never negative).
+
+    `gps_new` marks a fix that arrived this cycle; `gps_ok` that it is usable (2D/3D fix).
+    The fix describes the speed `latency_samples` cycles ago: the innovation is taken
+    against the prediction stored then and applied to the present estimate.
+    """
+    n_ring = state.shape[0] - SPD_RING0
+    if state[SPD_INIT] == 0.0:
+        if not (gps_new and gps_ok and math.isfinite(gps_speed)):
+            return 0.0
+        state[SPD_U] = gps_speed
+        state[SPD_BIAS] = 0.0
+        for k in range(n_ring):
+            state[SPD_RING0 + k] = gps_speed
+        state[SPD_INIT] = 1.0
+    a = accel_x if math.isfinite(accel_x) else 0.0
+    u = state[SPD_U] + (a - state[SPD_BIAS]) * dt
+    head = int(state[SPD_HEAD])
+    if gps_new and gps_ok and math.isfinite(gps_speed):
+        lag = min(latency_samples, n_ring - 1)
+        past = state[SPD_RING0 + (head - lag) % n_ring]
+        innovation = gps_speed - past
+        u += gain * innovation
+        # an accelerometer bias shows up as a persistent innovation of one sign
+        state[SPD_BIAS] -= bias_gain * innovation
+        # shift the stored predictions too, so the next fix is compared like with like
+        for k in range(n_ring):
+            state[SPD_RING0 + k] += gain * innovation
+    if u < 0.0:
+        u = 0.0
+    head = (head + 1) % n_ring
+    state[SPD_RING0 + head] = u
+    state[SPD_HEAD] = head
+    state[SPD_U] = u
+    return u
+
+
+@njit(cache=True)
+def speed_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.ndarray) -> None:
+    """One cycle from the inputs stage's outputs (accelerometer x, GPS speed and whether it is new)."""
+    accel_x = inputs[inp.OUT_RAW + inp.RAW_AX] if inputs[inp.OUT_ACCEL_OK] != 0.0 else 0.0
+    gps_ok = inputs[inp.OUT_GPS_OK] != 0.0
+    out[OUT_U] = speed_step(
+        st,
+        accel_x,
+        inputs[inp.OUT_RAW + inp.RAW_GPS_SPEED],
+        gps_ok,
+        gps_ok,
+        prm[P_DT],
+        prm[P_GAIN],
+        prm[P_BIAS_GAIN],
+        int(prm[P_LATENCY_SAMPLES]),
+    )
+    out[OUT_KNOWN] = 1.0 if st[SPD_INIT] != 0.0 else 0.0
+
+
+STAGE = Stage(
+    name="speed",
+    state=STATE,
+    params=PARAMS,
+    outputs=OUTPUTS,
+    build_params=build_params,
+    new_state=_new_state,
+    doc="GPS + longitudinal accelerometer, GPS latency compensated, held in dropouts",
+)

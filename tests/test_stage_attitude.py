@@ -1,0 +1,69 @@
+"""The attitude stage alone (the filter with its glue): a steady turn from the inputs stage's outputs, standstill."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from ptw_rt.core import attitude as att
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import speed as spd
+
+G = 9.81
+
+
+def _inputs(p, q, r, f_y, f_z, course=0.0, course_new=False):
+    return inp.OUTPUTS.vector(
+        {
+            "raw": [p, q, r, 0.0, f_y, f_z, 512.0, 0.0],
+            "core_ok": 1.0,
+            "accel_ok": 1.0,
+            "accel_trusted": 1.0,
+            "rates_ok": 1.0,
+            "gps_ok": 1.0 if course_new else 0.0,
+            "course": course,
+            "course_new": 1.0 if course_new else 0.0,
+        },
+        strict=False,
+    )
+
+
+def test_steady_turn_gives_the_coordinated_roll(settings, design):
+    b = att.STAGE.alone(settings, design)
+    u, r = 20.0, 0.05
+    roll = math.atan(u * r / G)
+    speed = spd.OUTPUTS.vector(u=u, known=1.0)
+    for k in range(1000):
+        t = 0.01 * k
+        course_new = k % 10 == 0 and k >= 10
+        course = (r * (t - 0.1) + math.pi) % (2 * math.pi) - math.pi
+        inputs = _inputs(0.0, r * math.sin(roll), r * math.cos(roll), 0.0, -G / math.cos(roll), course, course_new)
+        att.attitude_stage(b.state, b.params, b.outputs, inputs, speed)
+    out = b.outputs
+    assert out[att.OUT_OK] == 1.0
+    assert out[att.OUT_ROLL] == pytest.approx(roll, abs=math.radians(0.5))
+    assert out[att.OUT_YAW_RATE] == pytest.approx(r, abs=2e-3)
+    assert out[att.OUT_REJECTED_RUN] == 0.0
+
+
+def test_not_ok_before_the_first_sound_sample(settings, design):
+    b = att.STAGE.alone(settings, design)
+    inputs = _inputs(0.0, 0.0, 0.0, 0.0, -G)
+    inputs[inp.OUT_RATES_OK] = 0.0
+    att.attitude_stage(b.state, b.params, b.outputs, inputs, spd.OUTPUTS.vector(u=0.0, known=0.0))
+    assert b.outputs[att.OUT_OK] == 0.0
+
+
+def test_standstill_reads_the_gyro_biases(settings, design):
+    b = att.STAGE.alone(settings, design)
+    speed = spd.OUTPUTS.vector(u=0.0, known=1.0)  # a fix says: standing
+    for _ in range(3000):
+        att.attitude_stage(b.state, b.params, b.outputs, _inputs(0.004, -0.002, 0.003, 0.0, -G), speed)
+    assert b.outputs[att.OUT_BP] == pytest.approx(0.004, abs=2e-4)
+    assert b.outputs[att.OUT_BR] == pytest.approx(0.003, abs=2e-4)
+    assert b.outputs[att.OUT_ROLL_RATE] == pytest.approx(0.0, abs=2e-4)
+    # a restart (Estimator.reset) keeps the biases
+    att.STAGE.reset_state(b.state)
+    att.attitude_stage(b.state, b.params, b.outputs, _inputs(0.004, -0.002, 0.003, 0.0, -G), speed)
+    assert b.outputs[att.OUT_BP] == pytest.approx(0.004, abs=2e-4)

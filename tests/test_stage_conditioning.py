@@ -1,0 +1,79 @@
+"""The conditioning stage alone: steer angle, a_y at the centre of mass, observers on/off, the published roll."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from ptw_rt.core import attitude as att
+from ptw_rt.core import conditioning as cnd
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import layout as lay
+from ptw_rt.core import speed as spd
+
+G = 9.81
+
+
+def _inputs(p=0.0, q=0.0, r=0.0, f_y=0.0, f_z=-G, steer=512.0, reasons=0):
+    return inp.OUTPUTS.vector(
+        {"raw": [p, q, r, 0.0, f_y, f_z, steer, 0.0], "core_ok": 1.0, "reasons": reasons}, strict=False
+    )
+
+
+def _step(b, inputs, speed, attitude, imu_age=0.0):
+    s = lay.new_sample()
+    s[lay.S_IMU_AGE] = imu_age
+    cnd.conditioning_stage(s, b.state, b.params, b.outputs, inputs, speed, attitude)
+    return b.outputs
+
+
+def test_without_the_attitude_filter_the_roll_is_pulled_to_the_kinematic_roll(settings, design):
+    b = cnd.STAGE.alone(settings, design)
+    u, r = 20.0, 0.05
+    speed = spd.OUTPUTS.vector(u=u, known=1.0)
+    no_attitude = att.OUTPUTS.vector({}, strict=False)
+    steps = int(10.0 / b.params[cnd.P_FUSION_RATE] / b.params[cnd.P_DT])  # ten time constants
+    for _ in range(steps):
+        roll = b.outputs[cnd.OUT_ROLL]
+        out = _step(b, _inputs(q=r * math.sin(roll), r=r * math.cos(roll)), speed, no_attitude)
+    roll_kin = math.atan(u * r / G)
+    assert out[cnd.OUT_ROLL] == pytest.approx(roll_kin, abs=1e-3)
+    assert out[cnd.OUT_ROLL_KIN] == pytest.approx(roll_kin, abs=1e-4)
+    assert out[cnd.OUT_YAW_RATE] == pytest.approx(r, abs=1e-6)
+    assert out[cnd.OUT_RUN] == 1.0 and out[cnd.OUT_SPEED_LOW] == 0.0 and out[cnd.OUT_DIVERGED] == 0.0
+
+
+def test_with_the_attitude_filter(settings, design):
+    b = cnd.STAGE.alone(settings, design)
+    roll, p, r = 0.2, 0.1, 0.05
+    attitude = att.OUTPUTS.vector({"ok": 1.0, "roll": roll, "roll_rate": p, "yaw_rate": r, "bay": 0.1}, strict=False)
+    speed = spd.OUTPUTS.vector(u=20.0, known=1.0)
+    f_y, f_z = 1.0, -9.0
+    for _ in range(300):  # the derivative filters settle on constant rates
+        out = _step(b, _inputs(steer=522.0, f_y=f_y, f_z=f_z), speed, attitude, imu_age=0.004)
+    assert out[cnd.OUT_DEROLL] == roll and out[cnd.OUT_ROLL_RATE] == p and out[cnd.OUT_YAW_RATE] == r
+    assert out[cnd.OUT_ROLL] == pytest.approx(roll + p * 0.004)  # carried to the cycle's time
+    assert out[cnd.OUT_STEER] == pytest.approx(10 * 2 * math.pi / 1024)
+    assert out[cnd.OUT_YAW_ACCEL] == pytest.approx(0.0, abs=1e-9)
+    # constant rates: a_y at the CoM is the horizontal specific force, bias removed
+    assert out[cnd.OUT_A_Y] == pytest.approx((f_y - 0.1) * math.cos(roll) - f_z * math.sin(roll), abs=1e-9)
+    # an implausible roll is replaced by the kinematic one and reported
+    attitude[att.OUT_ROLL] = 3.0
+    out = _step(b, _inputs(), speed, attitude)
+    assert out[cnd.OUT_DIVERGED] == 1.0 and out[cnd.OUT_ROLL] == out[cnd.OUT_ROLL_KIN]
+    assert out[cnd.OUT_ROLL_LAST] == pytest.approx(roll + p * 0.004)
+
+
+def test_low_speed_or_a_missing_core_sensor_stops_the_observers(settings, design):
+    b = cnd.STAGE.alone(settings, design)
+    attitude = att.OUTPUTS.vector({"ok": 1.0}, strict=False)
+    out = _step(b, _inputs(), spd.OUTPUTS.vector(u=2.0, known=1.0), attitude)
+    assert out[cnd.OUT_SPEED_LOW] == 1.0 and out[cnd.OUT_RUN] == 0.0
+    assert int(out[cnd.OUT_REASONS]) == lay.REASON_SPEED_LOW
+    out = _step(b, _inputs(reasons=lay.REASON_STALE), spd.OUTPUTS.vector(u=20.0, known=0.0), attitude)
+    assert out[cnd.OUT_SPEED_LOW] == 1.0  # speed not known yet
+    inputs = _inputs()
+    inputs[inp.OUT_CORE_OK] = 0.0
+    out = _step(b, inputs, spd.OUTPUTS.vector(u=20.0, known=1.0), attitude)
+    assert out[cnd.OUT_SPEED_LOW] == 0.0 and out[cnd.OUT_RUN] == 0.0

@@ -1,0 +1,92 @@
+"""The inputs stage alone: plausibility, hold of stale and suspect messages, steer-encoder jumps, GPS age."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import layout as lay
+
+
+@pytest.fixture
+def stage(settings, design):
+    return inp.STAGE.alone(settings, design)
+
+
+def sample(p=0.01, steer=512.0, gps=20.0, fresh=lay.MSG_IMU_RATES | lay.MSG_IMU_ACCEL | lay.MSG_STEER, stale=0):
+    s = lay.new_sample()
+    s[lay.S_ROLL_RATE_BODY] = p
+    s[lay.S_ACCEL_Z] = -9.81
+    s[lay.S_STEER_COUNT] = steer
+    s[lay.S_GPS_SPEED] = gps
+    s[lay.S_GPS_FIX] = 3.0
+    s[lay.S_GPS_COURSE] = 90.0
+    s[lay.S_FRESH] = fresh
+    s[lay.S_STALE] = stale
+    return s
+
+
+def run(b, s):
+    inp.inputs_stage(s, b.state, b.params, b.outputs)
+    return b.outputs
+
+
+def test_plausible_values_pass_and_implausible_ones_are_held_and_flagged(stage):
+    out = run(stage, sample(p=0.02))
+    assert out[inp.OUT_RAW + inp.RAW_P] == 0.02 and int(out[inp.OUT_REASONS]) == 0
+    for bad in (math.nan, math.inf, 1e6):
+        out = run(stage, sample(p=bad))
+        assert out[inp.OUT_RAW + inp.RAW_P] == 0.02
+        assert int(out[inp.OUT_REASONS]) & lay.REASON_OUT_OF_RANGE
+    out = run(stage, sample(gps=-1.0))  # a negative speed is not a speed
+    assert out[inp.OUT_RAW + inp.RAW_GPS_SPEED] == 20.0
+
+
+def test_stale_and_suspect_messages_are_held(stage):
+    run(stage, sample(p=0.02))
+    out = run(stage, sample(p=0.3, stale=lay.MSG_IMU_RATES))
+    assert out[inp.OUT_RAW + inp.RAW_P] == 0.02 and out[inp.OUT_CORE_OK] == 0.0 and out[inp.OUT_RATES_OK] == 0.0
+    assert int(out[inp.OUT_REASONS]) & lay.REASON_STALE
+    s = sample(p=0.3)
+    s[lay.S_SUSPECT] = lay.MSG_IMU_RATES | lay.MSG_IMU_ACCEL
+    out = run(stage, s)
+    assert out[inp.OUT_RAW + inp.RAW_P] == 0.02 and out[inp.OUT_RATES_OK] == 0.0
+    assert out[inp.OUT_CORE_OK] == 1.0 and out[inp.OUT_ACCEL_OK] == 1.0 and out[inp.OUT_ACCEL_TRUSTED] == 0.0
+
+
+def test_a_steer_jump_is_held_until_it_persists(stage):
+    run(stage, sample(steer=512.0))
+    resync = int(stage.params[inp.P_STEER_RESYNC])
+    for _ in range(resync):
+        out = run(stage, sample(steer=700.0))
+        assert out[inp.OUT_RAW + inp.RAW_STEER] == 512.0
+    out = run(stage, sample(steer=700.0))
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 700.0
+    out = run(stage, sample(steer=703.0))  # a small step is a steering motion
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 703.0 and int(out[inp.OUT_REASONS]) == 0
+    out = run(stage, sample(steer=1.0))
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 703.0 and int(out[inp.OUT_REASONS]) & lay.REASON_OUT_OF_RANGE
+
+
+def test_a_small_step_across_the_encoders_wrap_is_a_steering_motion(stage):
+    run(stage, sample(steer=1022.0))
+    out = run(stage, sample(steer=1.0))
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 1.0 and int(out[inp.OUT_REASONS]) == 0
+
+
+def test_gps_age_and_course(stage):
+    fresh = lay.MSG_IMU_RATES | lay.MSG_IMU_ACCEL | lay.MSG_STEER
+    out = run(stage, sample(fresh=fresh | lay.MSG_GPS))
+    assert out[inp.OUT_GPS_OK] == 1.0 and out[inp.OUT_GPS_AGE] == 0.0
+    assert out[inp.OUT_COURSE_NEW] == 1.0 and out[inp.OUT_COURSE] == pytest.approx(math.pi / 2)
+    hold = stage.params[inp.P_GPS_HOLD]
+    n = int(np.ceil(hold / stage.params[inp.P_DT])) + 1
+    for _ in range(n):
+        out = run(stage, sample(fresh=fresh))
+    assert out[inp.OUT_GPS_LOST] == 1.0 and int(out[inp.OUT_REASONS]) & lay.REASON_GPS_LOST
+    assert out[inp.OUT_COURSE_NEW] == 0.0 and out[inp.OUT_COURSE] == 0.0
+    out = run(stage, sample(fresh=fresh | lay.MSG_GPS))
+    assert out[inp.OUT_GPS_LOST] == 0.0

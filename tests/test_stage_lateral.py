@@ -1,0 +1,59 @@
+"""The lateral stage alone: the fusion filter on a straight ride, its convergence clock, reset on a blow-up."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ptw_rt.core import attitude as att
+from ptw_rt.core import conditioning as cnd
+from ptw_rt.core import diagnostics as dia
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import kalman as kf
+from ptw_rt.core import lateral as lat
+from ptw_rt.core import speed as spd
+
+
+def _step(b, cond, diag_reset=0.0, accel=1.0, attitude_ok=1.0):
+    inputs = inp.OUTPUTS.vector({"accel_trusted": accel}, strict=False)
+    speed = spd.OUTPUTS.vector(u=20.0, known=1.0)
+    attitude = att.OUTPUTS.vector({"ok": attitude_ok}, strict=False)
+    diag = dia.OUTPUTS.vector({"reset": diag_reset}, strict=False)
+    lat.lateral_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, attitude, cond, diag)
+    return b.outputs
+
+
+def test_straight_upright_ride_stays_at_zero_and_the_clock_runs(settings, design):
+    b = lat.STAGE.alone(settings, design)
+    cond = cnd.OUTPUTS.vector({"run": 1.0}, strict=False)
+    for _ in range(200):
+        out = _step(b, cond)
+    z = out[lat.OUT_Z : lat.OUT_Z + kf.N_Z]
+    np.testing.assert_allclose(z, 0.0, atol=1e-9)
+    assert out[lat.OUT_RUN_TIME] == pytest.approx(2.0)
+    # no accelerometer, no attitude filter this cycle: their rows predict themselves, nothing moves
+    out = _step(b, cond, accel=0.0, attitude_ok=0.0)
+    np.testing.assert_allclose(out[lat.OUT_Z : lat.OUT_Z + kf.N_Z], 0.0, atol=1e-9)
+    # a UIHOSMO reset restarts the clock; stopping the observers zeroes everything
+    assert _step(b, cond, diag_reset=1.0)[lat.OUT_RUN_TIME] == 0.0
+    out = _step(b, cnd.OUTPUTS.vector({"run": 0.0}, strict=False))
+    assert out[lat.OUT_RUN_TIME] == 0.0 and not np.any(out[lat.OUT_Z : lat.OUT_Z + kf.N_Z])
+
+
+def test_a_steady_roll_measurement_is_followed(settings, design):
+    b = lat.STAGE.alone(settings, design)
+    cond = cnd.OUTPUTS.vector({"run": 1.0, "deroll": 0.05}, strict=False)
+    for _ in range(500):
+        out = _step(b, cond)
+    assert 0.0 < out[lat.OUT_Z + kf.PHI] <= 0.05 + 1e-6
+
+
+def test_a_blown_up_filter_is_reset_and_says_so(settings, design):
+    b = lat.STAGE.alone(settings, design)
+    cond = cnd.OUTPUTS.vector({"run": 1.0, "roll_last": 0.1, "steer": 0.02, "yaw_rate": 0.03}, strict=False)
+    _step(b, cond)
+    b.state[lat.ST_KF : lat.ST_KF + kf.N_Z] = 1e12
+    out = _step(b, cond)
+    assert out[lat.OUT_DIVERGED] == 1.0
+    assert out[lat.OUT_Z + kf.PHI] == 0.1 and out[lat.OUT_Z + kf.DELTA] == 0.02 and out[lat.OUT_Z + kf.TAU] == 0.0
+    assert _step(b, cond)[lat.OUT_DIVERGED] == 0.0

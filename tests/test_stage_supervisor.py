@@ -1,0 +1,73 @@
+"""The supervisor stage alone: modes, held and live reasons, validity."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from ptw_rt.core import attitude as att
+from ptw_rt.core import conditioning as cnd
+from ptw_rt.core import diagnostics as dia
+from ptw_rt.core import inputs as inp
+from ptw_rt.core import lateral as lat
+from ptw_rt.core import layout as lay
+from ptw_rt.core import speed as spd
+from ptw_rt.core import stiffness as stf
+from ptw_rt.core import supervisor as sup
+
+
+def _step(b, core_ok=1.0, known=1.0, run=1.0, run_time=10.0, reasons=0, diverged=0.0, roll_sd=0.001, rejected=0.0):
+    inputs = inp.OUTPUTS.vector({"core_ok": core_ok, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
+    speed = spd.OUTPUTS.vector(u=20.0, known=known)
+    attitude = att.OUTPUTS.vector({"ok": 1.0, "roll_sd": roll_sd, "rejected_run": rejected}, strict=False)
+    cond = cnd.OUTPUTS.vector({"run": run, "reasons": reasons}, strict=False)
+    diag = dia.OUTPUTS.vector({}, strict=False)
+    lateral = lat.OUTPUTS.vector({"run_time": run_time, "diverged": diverged}, strict=False)
+    stiffness = stf.OUTPUTS.vector({}, strict=False)
+    sup.supervisor_stage(b.state, b.params, b.outputs, inputs, speed, attitude, cond, diag, lateral, stiffness)
+    return int(b.outputs[sup.OUT_MODE]), int(b.outputs[sup.OUT_REASONS]), int(b.outputs[sup.OUT_VALID])
+
+
+@pytest.mark.parametrize(
+    ("kw", "mode"),
+    [
+        ({"known": 0.0}, lay.MODE_INIT),
+        ({"core_ok": 0.0}, lay.MODE_FAULT),
+        ({"reasons": lay.REASON_GPS_LOST}, lay.MODE_DEGRADED),
+        ({"run_time": 1.0}, lay.MODE_CONVERGING),
+        ({}, lay.MODE_VALID),
+    ],
+)
+def test_modes(settings, design, kw, mode):
+    b = sup.STAGE.alone(settings, design)
+    assert _step(b, **kw)[0] == mode
+
+
+def test_an_event_is_held_a_state_is_not(settings, design):
+    b = sup.STAGE.alone(settings, design)
+    hold = b.params[sup.P_REASON_HOLD]
+    mode, reasons, _ = _step(b, diverged=1.0)
+    assert reasons == lay.REASON_DIVERGING and mode == lay.MODE_DEGRADED
+    n = int(round(hold / b.params[sup.P_DT]))
+    for _ in range(n - 1):
+        assert _step(b)[1] == lay.REASON_DIVERGING
+    assert _step(b)[1] == 0
+    assert _step(b, reasons=lay.REASON_STALE)[1] == lay.REASON_STALE
+    assert _step(b)[1] == 0  # a state ends with the condition
+    # a divergence while the observers cannot run is a fault
+    assert _step(b, diverged=1.0, run=0.0)[0] == lay.MODE_FAULT
+
+
+def test_validity(settings, design):
+    b = sup.STAGE.alone(settings, design)
+    _, _, valid = _step(b)
+    for bit in (lay.V_ROLL, lay.V_ROLL_RATE, lay.V_STEER, lay.V_RIDER_TORQUE, lay.V_FY_FRONT, lay.V_LAT_VEL):
+        assert valid & bit
+    assert not valid & (lay.V_CORNERING | lay.V_CAMBER)  # never, until a learner with a covariance
+    tol = b.params[sup.P_ROLL_TOLERANCE]
+    assert not _step(b, roll_sd=tol / 2.9)[2] & lay.V_ROLL  # 3 sigma beyond the tolerance
+    assert not _step(b, rejected=10.0)[2] & lay.V_ROLL
+    assert not _step(b, run_time=1.0)[2] & lay.V_RIDER_TORQUE
+    assert b.outputs[sup.OUT_ROLL_SD] == pytest.approx(0.001)
+    assert math.isfinite(b.outputs[sup.OUT_ROLL_SD])
