@@ -67,6 +67,8 @@ TYRE_BANK_SCHEMA = Section(
         "valid_log_sd": (Number("", gt=0), 0.05),
         "valid_max_nis": (Number("", gt=0), 6.0),
         "valid_max_nis_fast": (Number("", gt=0), 12.0),
+        "alarm_hold": (Number("s", ge=0), 2.0),
+        "settle_time": (Number("s", ge=0), 2.0),
         "min_learning_speed": (Number("m/s", gt=0), 5.5),
         "excitation_window": (Number("s", gt=0), 2.0),
         "min_excitation_lateral_accel": (Number("m/s^2", gt=0), 0.8),
@@ -295,6 +297,8 @@ class TyreBankTuning:
     valid_log_sd: float
     valid_max_nis: float
     valid_max_nis_fast: float
+    alarm_hold: float
+    settle_time: float
     min_learning_speed: float
     excitation_window: float
     min_excitation_lateral_accel: float

@@ -51,9 +51,13 @@ from ptw_rt.core import supervisor as sup
 from ptw_rt.core.conditioning import ground_yaw_rate
 from ptw_rt.core.layout import (
     E_C_ALPHA_FRONT,
+    E_C_ALPHA_FRONT_SEED001,
     E_C_ALPHA_REAR,
+    E_C_ALPHA_REAR_SEED001,
     E_C_GAMMA_FRONT,
+    E_C_GAMMA_FRONT_SEED001,
     E_C_GAMMA_REAR,
+    E_C_GAMMA_REAR_SEED001,
     E_EXCITATION,
     E_FY_FRONT,
     E_FY_FRONT_ADAPTIVE,
@@ -81,6 +85,10 @@ from ptw_rt.core.layout import (
     E_STEER,
     E_STEER_RATE,
     E_TORQUE_UIHOSMO,
+    E_TYRE_LEARNING,
+    E_TYRE_LOG_SD,
+    E_TYRE_NIS,
+    E_TYRE_SCALE,
     E_VALID,
     E_Y_A,
     E_YAW_GYRO_BIAS,
@@ -142,10 +150,18 @@ def publish(
     est[E_LAT_VEL] = z[kf.VY] if run else 0.0
     est[E_FY_FRONT] = z[kf.FYF] if run else 0.0
     est[E_FY_REAR] = z[kf.FYR] if run else 0.0
-    est[E_C_ALPHA_FRONT] = o_stf[stf.OUT_STIFFNESS + 0]
-    est[E_C_GAMMA_FRONT] = o_stf[stf.OUT_STIFFNESS + 1]
-    est[E_C_ALPHA_REAR] = o_stf[stf.OUT_STIFFNESS + 2]
-    est[E_C_GAMMA_REAR] = o_stf[stf.OUT_STIFFNESS + 3]
+    est[E_C_ALPHA_FRONT] = o_lat[lat.OUT_TYRE_STIFFNESS + 0]  # the tyre bank's (lateral stage)
+    est[E_C_GAMMA_FRONT] = o_lat[lat.OUT_TYRE_STIFFNESS + 1]
+    est[E_C_ALPHA_REAR] = o_lat[lat.OUT_TYRE_STIFFNESS + 2]
+    est[E_C_GAMMA_REAR] = o_lat[lat.OUT_TYRE_STIFFNESS + 3]
+    est[E_TYRE_SCALE] = o_lat[lat.OUT_TYRE_SCALE]
+    est[E_TYRE_LOG_SD] = o_lat[lat.OUT_TYRE_LOG_SD]
+    est[E_TYRE_NIS] = o_lat[lat.OUT_TYRE_NIS]
+    est[E_TYRE_LEARNING] = o_lat[lat.OUT_TYRE_LEARNING]
+    est[E_C_ALPHA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 0]  # seed 001's adaptive observer (diagnostic)
+    est[E_C_GAMMA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 1]
+    est[E_C_ALPHA_REAR_SEED001] = o_stf[stf.OUT_STIFFNESS + 2]
+    est[E_C_GAMMA_REAR_SEED001] = o_stf[stf.OUT_STIFFNESS + 3]
     est[E_SPEED] = o_spd[spd.OUT_U]
     est[E_YAW_RATE] = ground_yaw_rate(raw[inp.RAW_Q], raw[inp.RAW_R], roll)  # as measured: the baselines' input
     est[E_ROLL_RATE_MEASURED] = raw[inp.RAW_P]
@@ -262,14 +278,35 @@ class Estimator:
         packed_step(sample, estimates, self._state, self._state_index, self._tables, self._table_index)
 
     def learned_stiffness(self) -> np.ndarray:
-        """[C_af, C_gf, C_ar, C_gr] in N/rad."""
-        return stf.learned(self.states["stiffness"], self.design)
+        """[C_af, C_gf, C_ar, C_gr] in N/rad: the tyre bank's scale times the nominal file's."""
+        k = lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])
+        return k * np.asarray(self.settings.vehicle.nominal_stiffness())
+
+    def learned_tyre_scale(self) -> float:
+        return lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])
+
+    def _start_tyres(self, scale: float, restored: bool) -> None:
+        lo, hi = float(self.design.tb_scale[0]), float(self.design.tb_scale[-1])
+        if not (math.isfinite(scale) and scale > 0.0):
+            raise ValueError(f"tyre scale must be finite and > 0, got {scale}")
+        lat.set_prior(
+            self.states["lateral"], self.params["lateral"], self.design.tb_scale, min(max(scale, lo), hi), restored
+        )
+        self.outputs["lateral"][lat.OUT_TYRE_SCALE] = 0.0  # the prior's centre until the bank runs
 
     def restore_stiffness(self, values) -> None:
-        """Start from stiffness learned earlier (clipped to the design's bounds); marks it restored."""
+        """Start from stiffness learned earlier: the tyre bank's prior around it (restored_sd), and seed 001's
+        adaptive observer from it (clipped to its bounds). Not valid until the ride confirms it."""
+        values = np.asarray(values, dtype=float)
+        if values.shape != (4,) or not np.all(np.isfinite(values)) or not np.all(values > 0.0):
+            raise ValueError("expected four finite, positive stiffness values")
+        ratios = values / np.asarray(self.settings.vehicle.nominal_stiffness())
+        self._start_tyres(float(np.exp(np.mean(np.log(ratios)))), restored=True)
         stf.restore(self.states["stiffness"], values, self.design)
 
     def set_initial_stiffness_scale(self, front: float, rear: float) -> None:
-        """Start from the nominal tyres times `front` (C_af, C_gf) and `rear` (C_ar, C_gr), clipped to the
-        design's bounds; not marked restored or learned (the evaluation's wrong-start check)."""
+        """Start from the nominal tyres times `front` (C_af, C_gf) and `rear` (C_ar, C_gr); the tyre bank learns
+        one scale for all four, so it starts from their geometric mean with its ordinary prior spread; not
+        marked restored or learned (the evaluation's wrong-start check)."""
         stf.start_from_scale(self.states["stiffness"], front, rear, self.design)
+        self._start_tyres(math.sqrt(float(front) * float(rear)), restored=False)

@@ -1,4 +1,11 @@
-"""Stage 6, lateral dynamics: the fusion filter (`ptw_rt.core.kalman`) with its measurements and guards (jitted).
+"""Stage 6, lateral dynamics and tyres: the tyre bank (`ptw_rt.core.tyre_bank`) of fusion filters (jitted).
+
+One fusion filter (`ptw_rt.core.kalman`) per hypothesis of the tyres' scale; the published states (torque,
+steer rate, v_y, forces) are their posterior mixture, so the tyres they run on are the learned ones, and the
+scale estimate with its spread and the filters' consistency (NIS) are this stage's outputs (the supervisor
+makes the stiffness valid bits from them). Learning is allowed only from sound inputs (this cycle's
+measurements new and in range), after the filters settled, above `min_learning_speed` and below
+`max_learning_roll` (the tyres' linear range); the bank itself also requires excitation.
 
 y = [steer, ground yaw rate, roll rate, a_y, kinematic roll]: the rates come bias-corrected from the attitude
 filter, whose roll is the fifth measurement. A measurement that is not there this cycle (accelerometer held,
@@ -24,40 +31,107 @@ from ptw_rt.core import diagnostics as dia
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import kalman as kf
 from ptw_rt.core import speed as spd
+from ptw_rt.core import tyre_bank as tb
 from ptw_rt.core.stage import Layout, Stage, v1, v2, v3
+
+MAX_HYPOTHESES = 32  # the bank's state is laid out for this many (the design file has `len(tb_scale)`)
 
 STATE = Layout(
     "ST_",
-    kf=kf.STATE_SIZE,  # the fusion filter's state (ptw_rt.core.kalman layout)
+    bank=tb.state_size(MAX_HYPOTHESES),  # the tyre bank (ptw_rt.core.tyre_bank layout, for its H)
     run_time=1,  # s since the model-based observers last (re)started
     y=kf.N_Y,  # scratch: this cycle's measurements
-    d=kf.N_D,  # scratch: the nonlinear correction
+    scratch=tb.SCRATCH_SIZE,  # the bank's scratch
+    bank_out=tb.OUT_SIZE,  # the bank's outputs
 )
-ST_KF, ST_RUN_TIME, ST_Y, ST_D = STATE.offsets
+ST_BANK, ST_RUN_TIME, ST_Y, ST_SCRATCH, ST_BANK_OUT = STATE.offsets
 
 PARAMS = Layout(
     "P_",
     dt=1,
     max_roll=1,  # rad: beyond, the filter has diverged
     max_torque=1,  # N m: likewise
+    converge_time=1,  # s after a (re)start before the filters' innovations are evidence
+    max_learning_roll=1,  # rad: beyond, the tyres leave their linear range: no learning
+    min_learning_speed=1,  # m/s
+    prior_sd=1,  # sd of log k of the prior around the start value
+    restored_sd=1,  # ... around a restored (persisted) value
+    nominal=4,  # N/rad: the nominal file's [C_af, C_gf, C_ar, C_gr]
+    bank=tb.PARAM_SIZE,  # the bank's parameters (ptw_rt.core.tyre_bank B_*)
 )
-P_DT, P_MAX_ROLL, P_MAX_TORQUE = PARAMS.offsets
+(
+    P_DT,
+    P_MAX_ROLL,
+    P_MAX_TORQUE,
+    P_CONVERGE_TIME,
+    P_MAX_LEARNING_ROLL,
+    P_MIN_LEARNING_SPEED,
+    P_PRIOR_SD,
+    P_RESTORED_SD,
+    P_NOMINAL,
+    P_BANK,
+) = PARAMS.offsets
 
 OUTPUTS = Layout(
     "OUT_",
     z=kf.N_Z,  # the corrected state [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau] (0 while not running)
     run_time=1,  # s since the model-based observers last (re)started
     diverged=1,  # 1: the filter was reset this cycle
+    tyre_scale=1,  # k: the tyres' small-slip stiffness over the nominal file's
+    tyre_log_sd=1,  # sd of log k (posterior spread)
+    tyre_map_scale=1,  # k of the most likely hypothesis
+    tyre_map_weight=1,  # its posterior weight
+    tyre_nis=1,  # its windowed mean normalised innovation (consistency; expected kf.N_Y)
+    tyre_nis_fast=1,  # ... over the short window
+    tyre_learning=1,  # 1: this cycle's evidence moved the estimate
+    tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
 )
-OUT_Z, OUT_RUN_TIME, OUT_DIVERGED = OUTPUTS.offsets
+(
+    OUT_Z,
+    OUT_RUN_TIME,
+    OUT_DIVERGED,
+    OUT_TYRE_SCALE,
+    OUT_TYRE_LOG_SD,
+    OUT_TYRE_MAP_SCALE,
+    OUT_TYRE_MAP_WEIGHT,
+    OUT_TYRE_NIS,
+    OUT_TYRE_NIS_FAST,
+    OUT_TYRE_LEARNING,
+    OUT_TYRE_STIFFNESS,
+) = OUTPUTS.offsets
 
-TABLES = (("grid", 1), ("kf_Phi", 3), ("kf_K", 3), ("kf_C", 2), ("kf_Gd", 3), ("kf_nonlinear", 1))
-T_GRID, T_PHI, T_K, T_C, T_GD, T_NONLINEAR = range(len(TABLES))
+TABLES = (
+    ("grid", 1),
+    ("tb_scale", 1),
+    ("tb_Phi", 3),
+    ("tb_K", 3),
+    ("kf_C", 2),
+    ("tb_Gd", 3),
+    ("kf_nonlinear", 1),
+    ("tb_Sinv", 3),
+    ("tb_logdet", 3),
+)
+T_GRID, T_SCALE, T_PHI, T_K, T_C, T_GD, T_NONLINEAR, T_SINV, T_LOGDET = range(len(TABLES))
 
 
 def build_params(settings, design) -> np.ndarray:
     est = settings.estimator
-    return PARAMS.vector(dt=float(design.sample_time), max_roll=est.max_roll, max_torque=est.max_rider_torque)
+    tun = est.tyre_bank
+    count = len(design.tb_scale)
+    if count > MAX_HYPOTHESES:
+        raise ValueError(f"the design has {count} tyre hypotheses, at most {MAX_HYPOTHESES} are laid out")
+    return PARAMS.vector(
+        dt=float(design.sample_time),
+        max_roll=est.max_roll,
+        max_torque=est.max_rider_torque,
+        converge_time=est.converge_time,
+        max_learning_roll=tun.max_learning_roll,
+        min_learning_speed=tun.min_learning_speed,
+        prior_sd=tun.prior_sd,
+        restored_sd=tun.restored_sd,
+        nominal=np.array(settings.vehicle.nominal_stiffness()),
+        bank=tb.bank_params(count, float(design.sample_time), tun),
+    )
 
 
 @njit(cache=True)
@@ -90,7 +164,9 @@ def lateral_stage(
         st[ST_RUN_TIME] += prm[P_DT]
         if diag[dia.OUT_RESET] != 0.0:
             st[ST_RUN_TIME] = 0.0
-    kf_state = st[ST_KF : ST_KF + kf.STATE_SIZE]
+    bank = st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)]
+    bank_prm = prm[P_BANK : P_BANK + tb.PARAM_SIZE]
+    bank_out = st[ST_BANK_OUT : ST_BANK_OUT + tb.OUT_SIZE]
     kf_out = out[OUT_Z : OUT_Z + kf.N_Z]
     diverged = False
     if run:
@@ -99,45 +175,59 @@ def lateral_stage(
         r_ground = cond[cnd.OUT_YAW_RATE]
         p_rate = cond[cnd.OUT_ROLL_RATE]
         roll_prev = cond[cnd.OUT_DEROLL]
+        u = speed[spd.OUT_U]
         y_kf = st[ST_Y : ST_Y + kf.N_Y]
         y_kf[0] = delta
         y_kf[1] = r_ground
         y_kf[2] = p_rate
-        if inputs[inp.OUT_ACCEL_TRUSTED] != 0.0:
+        accel_trusted = inputs[inp.OUT_ACCEL_TRUSTED] != 0.0
+        attitude_ok = attitude[att.OUT_OK] != 0.0
+        # a measurement that is not there this cycle: the last published state's prediction of it (no innovation
+        # to speak of; and no evidence about the tyres is taken from such a cycle)
+        if accel_trusted:
             y_kf[3] = cond[cnd.OUT_A_Y]
-        else:  # no accelerometer: no innovation from it (the model's own prediction)
+        else:
             acc = 0.0
             for c in range(kf.N_Z):
-                acc += C[3, c] * kf_state[c]
+                acc += C[3, c] * kf_out[c]
             y_kf[3] = acc
-        # the kinematic roll as a measurement
-        if attitude[att.OUT_OK] != 0.0:
-            y_kf[4] = roll_prev
-        else:  # no kinematic roll: no innovation from it
-            acc = 0.0
-            for c in range(kf.N_Z):
-                acc += C[4, c] * kf_state[c]
-            y_kf[4] = acc
-        kf.kalman_step(
-            kf_state,
-            kf_out,
+        y_kf[4] = roll_prev if attitude_ok else kf_out[kf.PHI]
+        observe = (
+            accel_trusted
+            and attitude_ok
+            and inputs[inp.OUT_RATES_OK] != 0.0
+            and int(inputs[inp.OUT_REASONS]) == 0
+            and st[ST_RUN_TIME] >= prm[P_CONVERGE_TIME]
+        )
+        learn = observe and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL] and u >= prm[P_MIN_LEARNING_SPEED]
+        tb.bank_step(
+            bank,
+            bank_out,
+            st[ST_SCRATCH : ST_SCRATCH + tb.SCRATCH_SIZE],
+            bank_prm,
             y_kf,
-            speed[spd.OUT_U],
+            u,
             roll_prev,
+            observe,
+            learn,
             v1(tables, tindex, t0 + T_GRID),
+            v1(tables, tindex, t0 + T_SCALE),
             v3(tables, tindex, t0 + T_PHI),
             v3(tables, tindex, t0 + T_K),
             C,
             v3(tables, tindex, t0 + T_GD),
             v1(tables, tindex, t0 + T_NONLINEAR),
-            st[ST_D : ST_D + kf.N_D],
+            v3(tables, tindex, t0 + T_SINV),
+            v3(tables, tindex, t0 + T_LOGDET),
         )
+        for k in range(kf.N_Z):
+            kf_out[k] = bank_out[tb.OUT_Z + k]
         if (
             not _all_finite(kf_out, kf.N_Z)
             or abs(kf_out[kf.PHI]) > prm[P_MAX_ROLL]
             or abs(kf_out[kf.TAU]) > prm[P_MAX_TORQUE]
         ):
-            kf_state[kf.INIT] = 0.0
+            tb.restart_filters(bank, bank_prm)
             diverged = True
             for k in range(kf.N_Z):
                 kf_out[k] = 0.0
@@ -146,9 +236,25 @@ def lateral_stage(
             kf_out[kf.R] = r_ground
             kf_out[kf.PHI_DOT] = p_rate
     else:
-        kf_state[kf.INIT] = 0.0
+        tb.restart_filters(bank, bank_prm)
+        bank_out[tb.OUT_LEARNING] = 0.0
         for k in range(kf.N_Z):
             kf_out[k] = 0.0
+    if bank_out[tb.OUT_SCALE] == 0.0:  # the bank has not run yet: its prior's centre, no claim
+        bank_out[tb.OUT_SCALE] = tb.prior_centre(bank, bank_prm)
+        bank_out[tb.OUT_LOG_SD] = prm[P_PRIOR_SD]
+        bank_out[tb.OUT_MAP_SCALE] = bank_out[tb.OUT_SCALE]
+        bank_out[tb.OUT_MAP_NIS] = kf.N_Y
+        bank_out[tb.OUT_MAP_NIS_FAST] = kf.N_Y
+    out[OUT_TYRE_SCALE] = bank_out[tb.OUT_SCALE]
+    out[OUT_TYRE_LOG_SD] = bank_out[tb.OUT_LOG_SD]
+    out[OUT_TYRE_MAP_SCALE] = bank_out[tb.OUT_MAP_SCALE]
+    out[OUT_TYRE_MAP_WEIGHT] = bank_out[tb.OUT_MAP_WEIGHT]
+    out[OUT_TYRE_NIS] = bank_out[tb.OUT_MAP_NIS]
+    out[OUT_TYRE_NIS_FAST] = bank_out[tb.OUT_MAP_NIS_FAST]
+    out[OUT_TYRE_LEARNING] = bank_out[tb.OUT_LEARNING]
+    for k in range(4):
+        out[OUT_TYRE_STIFFNESS + k] = bank_out[tb.OUT_SCALE] * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
 
@@ -160,5 +266,33 @@ STAGE = Stage(
     outputs=OUTPUTS,
     build_params=build_params,
     tables=TABLES,
-    doc="steady-state Kalman filter on the torque-augmented Sharp model: torque, steer rate, v_y, tyre forces",
+    new_state=lambda settings, design: np.zeros(STATE.size),
+    reset=lambda st: reset(st),
+    doc="tyre bank of steady-state Kalman filters on the Sharp model: torque, steer rate, v_y, forces, tyre scale",
 )
+
+
+def reset(st: np.ndarray) -> None:
+    """Forget the dynamic states; keep what the bank learned (its evidence and prior)."""
+    st[ST_RUN_TIME] = 0.0
+    bank = st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)]
+    for h in range(MAX_HYPOTHESES):
+        bank[h * tb.BLOCK + kf.INIT] = 0.0
+
+
+def set_prior(st: np.ndarray, prm: np.ndarray, scales: np.ndarray, centre: float, restored: bool) -> None:
+    """Start the tyre estimate from `centre` x nominal (a persisted value, or a test's wrong start)."""
+    sd = prm[P_RESTORED_SD] if restored else prm[P_PRIOR_SD]
+    tb.set_prior(
+        st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)], prm[P_BANK : P_BANK + tb.PARAM_SIZE], scales, centre, sd
+    )
+
+
+def scale_estimate(st: np.ndarray, prm: np.ndarray, out: np.ndarray) -> float:
+    """The current tyre scale (the bank's posterior estimate; its prior's centre before it ran)."""
+    k = out[OUT_TYRE_SCALE]
+    if k > 0.0:
+        return float(k)
+    return float(
+        tb.prior_centre(st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)], prm[P_BANK : P_BANK + tb.PARAM_SIZE])
+    )

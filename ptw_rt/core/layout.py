@@ -107,7 +107,15 @@ E_ROLL_SD = 31  # rad, standard deviation of the published roll (the attitude fi
 E_ROLL_FUSION = 32  # rad, the Sharp-model fusion filter's roll after it fused the kinematic roll (diagnostic)
 E_PITCH_GYRO_BIAS = 33  # rad/s, the attitude filter's pitch-gyro bias estimate
 E_LAT_ACCEL_BIAS = 34  # m/s^2, the attitude filter's lateral-accelerometer bias estimate
-ESTIMATES_SIZE = 35
+E_TYRE_SCALE = 35  # the tyres' scale k (published stiffness = k x nominal; the tyre bank's estimate)
+E_TYRE_LOG_SD = 36  # its posterior spread, sd of log k
+E_TYRE_NIS = 37  # the most likely tyre filter's windowed normalised innovation (consistency, expected 5)
+E_TYRE_LEARNING = 38  # 1 while the ride's evidence moves the tyre estimate
+E_C_ALPHA_FRONT_SEED001 = 39  # N/rad, seed 001's adaptive observer (the seed's method, evaluated beside ours)
+E_C_GAMMA_FRONT_SEED001 = 40
+E_C_ALPHA_REAR_SEED001 = 41
+E_C_GAMMA_REAR_SEED001 = 42
+ESTIMATES_SIZE = 43
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -157,6 +165,14 @@ ESTIMATE_NAMES = (
     "roll_fusion",
     "pitch_gyro_bias",
     "lat_accel_bias",
+    "tyre_scale",
+    "tyre_log_sd",
+    "tyre_nis",
+    "tyre_learning",
+    "c_alpha_front_seed001",
+    "c_gamma_front_seed001",
+    "c_alpha_rear_seed001",
+    "c_gamma_rear_seed001",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

@@ -5,16 +5,18 @@ REASON_DIVERGING when any stage reset an observer this cycle (their OUT_DIVERGED
 held for ``reason_hold`` seconds so a one-cycle event is visible on the bus; conditions that are states
 (speed low, GPS lost, sensor stale) end as soon as they end.
 
-Mode: INIT until the speed is known, FAULT when the core inputs (IMU rates, steer) are missing or an observer
-diverged while the observers cannot run, DEGRADED with any reason, CONVERGING for ``converge_time`` after the
-observers (re)start, then VALID.
+Mode: INIT until the speed is known, FAULT when the IMU's rates are missing (nothing can be estimated) or an
+observer diverged while the observers cannot run, DEGRADED with any reason (a silent steering encoder among
+them: roll still comes from the IMU), CONVERGING for ``converge_time`` after the observers (re)start, then
+VALID.
 
 Validity: roll from its own uncertainty (3 sigma of the attitude filter's roll within ``roll_tolerance``, the
 filter not rejecting its measurements); torque, steer rate, lateral velocity and forces once the observers
-have settled. Tyre stiffness is never published VALID by this estimator yet. The timer-and-bound rule it had
-set the bits on 15 of 40 cells of the evaluation matrix while the values were 20-150 % off (issue #12); a valid
-bit must come from the learned value's own uncertainty, which the adaptive law does not carry. Until a
-stiffness learner with a covariance replaces it, V_CORNERING / V_CAMBER stay clear.
+have settled. Tyre stiffness (the tyre bank's scale, lateral stage) from its own posterior and consistency:
+the posterior spread of log k within ``tyre_valid_log_sd`` (the data single out one tyre), the most likely
+filter's windowed normalised innovation within ``tyre_valid_max_nis`` (that tyre explains the data), no
+short-window inconsistency (``tyre_valid_max_nis_fast``, a sudden change of road) for ``tyre_hold`` seconds,
+the most likely hypothesis unchanged for ``tyre_settle`` seconds, and the observers settled.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ from ptw_rt.core.layout import (
     REASON_GPS_LOST,
     REASON_SPEED_LOW,
     REASON_STALE,
+    V_CAMBER,
+    V_CORNERING,
     V_FY_FRONT,
     V_FY_REAR,
     V_LAT_VEL,
@@ -58,8 +62,11 @@ STATE = Layout(
     "ST_",
     time=1,  # s since start (sum of dt)
     reason_until=N_REASONS,  # per reason bit: time until which it stays raised
+    tyre_alarm_until=1,  # s: the tyres are not valid before this (a short-window inconsistency was seen)
+    tyre_stable_since=1,  # s: since when the most likely tyre hypothesis has been the same and concentrated
+    tyre_last_map=1,  # that hypothesis' scale
 )
-ST_TIME, ST_REASON_UNTIL = STATE.offsets
+ST_TIME, ST_REASON_UNTIL, ST_TYRE_ALARM_UNTIL, ST_TYRE_STABLE_SINCE, ST_TYRE_LAST_MAP = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -68,8 +75,24 @@ PARAMS = Layout(
     converge_time=1,  # s after the observers (re)start before VALID
     roll_tolerance=1,  # rad: the published roll is valid while 3 sigma of it is within this
     max_rejected=1,  # consecutive rejected attitude innovations from which the roll is not valid
+    tyre_valid_log_sd=1,  # the tyre scale is valid while the posterior sd of log k is within this ...
+    tyre_valid_max_nis=1,  # ... the most likely filter's windowed NIS within this ...
+    tyre_valid_max_nis_fast=1,  # ... and its short-window NIS has not exceeded this
+    tyre_hold=1,  # s: for this long after it did
+    tyre_settle=1,  # s the most likely hypothesis must have stayed the same
 )
-P_DT, P_REASON_HOLD, P_CONVERGE_TIME, P_ROLL_TOLERANCE, P_MAX_REJECTED = PARAMS.offsets
+(
+    P_DT,
+    P_REASON_HOLD,
+    P_CONVERGE_TIME,
+    P_ROLL_TOLERANCE,
+    P_MAX_REJECTED,
+    P_TYRE_VALID_LOG_SD,
+    P_TYRE_VALID_MAX_NIS,
+    P_TYRE_VALID_MAX_NIS_FAST,
+    P_TYRE_HOLD,
+    P_TYRE_SETTLE,
+) = PARAMS.offsets
 
 OUTPUTS = Layout(
     "OUT_",
@@ -89,6 +112,11 @@ def build_params(settings, design) -> np.ndarray:
         converge_time=est.converge_time,
         roll_tolerance=math.radians(est.roll_tolerance_deg),
         max_rejected=10,
+        tyre_valid_log_sd=est.tyre_bank.valid_log_sd,
+        tyre_valid_max_nis=est.tyre_bank.valid_max_nis,
+        tyre_valid_max_nis_fast=est.tyre_bank.valid_max_nis_fast,
+        tyre_hold=est.tyre_bank.alarm_hold,
+        tyre_settle=est.tyre_bank.settle_time,
     )
 
 
@@ -139,14 +167,15 @@ def supervisor_stage(
     reasons = (reasons_now & states) | (_held_reasons(st) & ~states)
 
     core_ok = inputs[inp.OUT_CORE_OK] != 0.0
+    imu_ok = inputs[inp.OUT_IMU_OK] != 0.0
     accel_ok = inputs[inp.OUT_ACCEL_OK] != 0.0
     run = cond[cnd.OUT_RUN] != 0.0
     run_time = lateral[lat.OUT_RUN_TIME]
     if speed[spd.OUT_KNOWN] == 0.0 and core_ok:
         mode = MODE_INIT
-    elif not core_ok:
+    elif not imu_ok:  # without the IMU's rates nothing can be estimated; without the encoder, roll still can
         mode = MODE_FAULT
-    elif reasons & REASON_DIVERGING and not run:
+    elif reasons & REASON_DIVERGING and not run and core_ok:
         mode = MODE_FAULT
     elif reasons != 0:
         mode = MODE_DEGRADED
@@ -172,6 +201,23 @@ def supervisor_stage(
         valid |= V_LAT_VEL
         if accel_ok:
             valid |= V_FY_FRONT | V_FY_REAR
+    # tyre scale: valid from the bank's posterior and consistency (module doc)
+    t = st[ST_TIME]
+    if lateral[lat.OUT_TYRE_NIS_FAST] > prm[P_TYRE_VALID_MAX_NIS_FAST]:
+        st[ST_TYRE_ALARM_UNTIL] = t + prm[P_TYRE_HOLD]
+    concentrated = lateral[lat.OUT_TYRE_LOG_SD] <= prm[P_TYRE_VALID_LOG_SD]
+    if not concentrated or lateral[lat.OUT_TYRE_MAP_SCALE] != st[ST_TYRE_LAST_MAP]:
+        st[ST_TYRE_STABLE_SINCE] = t
+    st[ST_TYRE_LAST_MAP] = lateral[lat.OUT_TYRE_MAP_SCALE]
+    if (
+        run
+        and run_time >= prm[P_CONVERGE_TIME]
+        and concentrated
+        and lateral[lat.OUT_TYRE_NIS] <= prm[P_TYRE_VALID_MAX_NIS]
+        and t >= st[ST_TYRE_ALARM_UNTIL]
+        and t - st[ST_TYRE_STABLE_SINCE] >= prm[P_TYRE_SETTLE]
+    ):
+        valid |= V_CORNERING | V_CAMBER
     out[OUT_MODE] = mode
     out[OUT_REASONS] = reasons
     out[OUT_VALID] = valid

@@ -137,6 +137,15 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float,
 
 
 @njit(cache=True)
+def prior_centre(st: np.ndarray, prm: np.ndarray) -> float:
+    """The prior's centre (1 before any prior was set)."""
+    H = int(prm[B_COUNT])
+    if st[_scalars0(H) + SC_INIT] == 0.0:
+        return 1.0
+    return math.exp(st[_scalars0(H) + SC_CENTRE])
+
+
+@njit(cache=True)
 def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
     """Re-initialise every filter's dynamic states at the next step; the evidence is kept."""
     H = int(prm[B_COUNT])
