@@ -253,6 +253,43 @@ def test_cache_warm_start_compiles_nothing(tmp_path):
     assert any(tmp_path.joinpath("numba").rglob("*packed_step*.nbi"))
 
 
+def test_the_step_allocates_nothing_beyond_unboxing_its_arguments():
+    """NRT allocation count per step == the 6 array arguments numba wraps when called from Python: the compiled
+    step itself (every stage) allocates nothing."""
+    code = textwrap.dedent(
+        """
+        import json
+        from numba.core.runtime import rtsys
+        from ptw_rt.core import layout as lay
+        from ptw_rt.edge.cycle import build_runner
+        est = build_runner("config/scooter.yaml").estimator
+        out = lay.new_estimates()
+        samples = []
+        for k in range(400):
+            s = lay.new_sample()
+            s[lay.S_YAW_RATE_BODY] = 0.05
+            s[lay.S_ACCEL_Z] = -9.81
+            s[lay.S_STEER_COUNT] = 512.0
+            s[lay.S_GPS_SPEED], s[lay.S_GPS_FIX] = 20.0, 3.0
+            s[lay.S_FRESH] = 7 | (8 if k % 10 == 0 else 0)
+            samples.append(s)
+        for s in samples[:10]:
+            est.step(s, out)
+        a = rtsys.get_allocation_stats()
+        for s in samples:
+            est.step(s, out)
+        b = rtsys.get_allocation_stats()
+        print(json.dumps({"alloc": b.alloc - a.alloc, "free": b.free - a.free, "steps": len(samples)}))
+        """
+    )
+    env = dict(os.environ, NUMBA_NRT_STATS="1")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    p = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    r = json.loads(p.stdout.strip().splitlines()[-1])
+    assert r["alloc"] == r["free"] == 6 * r["steps"], r
+
+
 @pytest.mark.slow
 def test_dlc_100_meets_the_roll_target_through_the_daemons_code_path():
     from ptw_rt.eval.evaluate import evaluate_scenario
