@@ -87,6 +87,16 @@ CONTRACT_OUTPUTS: dict[str, dict] = {
             "RearCamberStiffness": ("N/rad", 1, 0, 4000),
         },
     },
+    # added in v1.1 (issue #12: the confidence of the learned tyres); every v1 name unchanged
+    "EST_TireConfidence": {
+        "hz": 10,
+        "signals": {
+            "TireScale": (None, 1e-4, 0.0, 6.5),
+            "TireScaleLogSd": (None, 1e-4, 0.0, 6.5),
+            "TireModelConsistency": (None, 0.01, 0.0, 600.0),
+            "TireLearning": (None, 1, 0, 1),
+        },
+    },
     "EST_Status": {
         "hz": 10,
         "signals": {

@@ -67,12 +67,13 @@ def test_rates_counters_and_crcs(codec):
         per_cycle.append(len(frames))
         for name, values in _decode_all(codec, frames).items():  # decode_checked verifies the P11 CRCs
             seen.setdefault(name, []).append(int(values[f"{name}_Counter"]))
-    assert enc.periods == {n: (10 if n in ("EST_Status", "EST_TireStiffness") else 1) for n in enc.periods}
-    assert per_cycle[0] == 5 and per_cycle[10] == 5 and per_cycle[1] == 3 and per_cycle[9] == 3
-    assert sum(per_cycle) == 3 * 100 + 2 * 10
+    slow = ("EST_Status", "EST_TireStiffness", "EST_TireConfidence")
+    assert enc.periods == {n: (10 if n in slow else 1) for n in enc.periods}
+    assert per_cycle[0] == 6 and per_cycle[10] == 6 and per_cycle[1] == 3 and per_cycle[9] == 3
+    assert sum(per_cycle) == 3 * 100 + 3 * 10
     for name in ("EST_Roll", "EST_RiderTorque", "EST_Lateral"):
         assert seen[name] == [k % 15 for k in range(100)]  # wraps 14 -> 0, 15 never sent
-    for name in ("EST_Status", "EST_TireStiffness"):
+    for name in ("EST_Status", "EST_TireStiffness", "EST_TireConfidence"):
         assert seen[name] == list(range(10))
     # a counter continuing over the wrap
     assert seen["EST_Roll"][14:16] == [14, 0]

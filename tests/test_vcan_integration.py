@@ -575,11 +575,12 @@ def test_silent_steering_encoder_degrades_and_recovers(session):
     # from when the first missing frame was due (10 ms after the last one). Measured here: ~40 ms.
     torque = session.decoded("EST_RiderTorque", t_last, t_back)
     t_det = next(t for t, v in torque if v["SteerAngleEst_Valid"] == 0 and v["EST_RiderTorque_Valid"] == 0)
-    roll_det = next(t for t, v in session.decoded("EST_Roll", t_last, t_back) if v["EST_Roll_Valid"] == 0)
     delay = t_det - t_last
     session.figures["silent_steer_to_invalid_ms"] = round(1e3 * delay, 1)
     assert delay <= 0.01 + 0.03 + 3 * 0.01 + 0.012, delay
-    assert abs(roll_det - t_det) < 0.002  # the same cycle
+    # roll comes from the IMU alone (the kinematic attitude filter): it stays valid without the encoder
+    roll = session.decoded("EST_Roll", t_det, t_back)
+    assert roll and all(v["EST_Roll_Valid"] == 1 for t, v in roll)
     # the 10 Hz status says so in its next frame, with the encoder's timeout bit, until the encoder is back
     bad = [(t, v) for t, v in status if t_last < t < t_back]
     t_bad, v_bad = next((t, v) for t, v in bad if v["Mode"] in BAD_MODES)

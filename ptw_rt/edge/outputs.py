@@ -30,6 +30,10 @@ from ptw_rt.core.layout import (
     E_ROLL_RATE,
     E_STEER,
     E_STEER_RATE,
+    E_TYRE_LEARNING,
+    E_TYRE_LOG_SD,
+    E_TYRE_NIS,
+    E_TYRE_SCALE,
     E_VALID,
     MODE_FAULT,
     MODE_INIT,
@@ -67,11 +71,18 @@ SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
         ("FrontCamberStiffness", E_C_GAMMA_FRONT, 0),
         ("RearCamberStiffness", E_C_GAMMA_REAR, 0),
     ),
+    # diagnostics of the tyre estimate: no per-signal validity; the message is valid while the estimator runs
+    "EST_TireConfidence": (
+        ("TireScale", E_TYRE_SCALE, 0),
+        ("TireScaleLogSd", E_TYRE_LOG_SD, 0),
+        ("TireModelConsistency", E_TYRE_NIS, 0),
+        ("TireLearning", E_TYRE_LEARNING, 0),
+    ),
 }
 # group validity bits of EST_TireStiffness
 _STIFFNESS_VALID = (("CorneringStiffness_Valid", V_CORNERING), ("CamberStiffness_Valid", V_CAMBER))
 FAST_MESSAGES = ("EST_Roll", "EST_RiderTorque", "EST_Lateral")
-SLOW_MESSAGES = ("EST_Status", "EST_TireStiffness")
+SLOW_MESSAGES = ("EST_Status", "EST_TireStiffness", "EST_TireConfidence")
 _STATUS_SIGNALS = ("Mode", "SensorTimeouts", "ReasonBits", "OverrunCount", "CycleTimeUs")
 
 
@@ -143,7 +154,8 @@ class OutputEncoder:
             values[p] = v
         for vbit, p in vflags:
             values[p] = 1.0 if valid & vbit else 0.0
-        values[msg_valid_pos] = 1.0 if mode_ok and valid & group else 0.0
+        # a message of diagnostics (no V_* bit in its group) is valid whenever the estimator runs
+        values[msg_valid_pos] = 1.0 if mode_ok and (group == 0 or valid & group) else 0.0
         # the message's rolling counter (as _next, inline)
         counters = self.counters
         c = counters[name]
@@ -213,6 +225,7 @@ class OutputEncoder:
         ]
         if cycle_index % periods["EST_Status"] == 0:
             out.append(self.status_frame(estimates, stale_bits, status or {}, reasons=reasons))
-        if cycle_index % periods["EST_TireStiffness"] == 0:
-            out.append(self._signal_frame("EST_TireStiffness", est, mode_ok, valid))
+        for name in ("EST_TireStiffness", "EST_TireConfidence"):
+            if cycle_index % periods[name] == 0:
+                out.append(self._signal_frame(name, est, mode_ok, valid))
         return out
