@@ -12,6 +12,7 @@ from ptw_rt.core import inputs as inp
 from ptw_rt.core import kalman as kf
 from ptw_rt.core import lateral as lat
 from ptw_rt.core import speed as spd
+from ptw_rt.core import tyre_bank as tb
 
 
 def _step(b, cond, diag_reset=0.0, accel=1.0, attitude_ok=1.0):
@@ -52,7 +53,8 @@ def test_a_blown_up_filter_is_reset_and_says_so(settings, design):
     b = lat.STAGE.alone(settings, design)
     cond = cnd.OUTPUTS.vector({"run": 1.0, "roll_last": 0.1, "steer": 0.02, "yaw_rate": 0.03}, strict=False)
     _step(b, cond)
-    b.state[lat.ST_KF : lat.ST_KF + kf.N_Z] = 1e12
+    for h in range(len(design.tb_scale)):  # every filter of the tyre bank blown up
+        b.state[lat.ST_BANK + h * tb.BLOCK : lat.ST_BANK + h * tb.BLOCK + kf.N_Z] = 1e12
     out = _step(b, cond)
     assert out[lat.OUT_DIVERGED] == 1.0
     assert out[lat.OUT_Z + kf.PHI] == 0.1 and out[lat.OUT_Z + kf.DELTA] == 0.02 and out[lat.OUT_Z + kf.TAU] == 0.0

@@ -17,13 +17,30 @@ from ptw_rt.core import stiffness as stf
 from ptw_rt.core import supervisor as sup
 
 
-def _step(b, core_ok=1.0, known=1.0, run=1.0, run_time=10.0, reasons=0, diverged=0.0, roll_sd=0.001, rejected=0.0):
-    inputs = inp.OUTPUTS.vector({"core_ok": core_ok, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
+def _step(
+    b,
+    core_ok=1.0,
+    imu_ok=None,
+    known=1.0,
+    run=1.0,
+    run_time=10.0,
+    reasons=0,
+    diverged=0.0,
+    roll_sd=0.001,
+    rejected=0.0,
+    tyres=None,
+):
+    imu_ok = core_ok if imu_ok is None else imu_ok
+    inputs = inp.OUTPUTS.vector({"core_ok": core_ok, "imu_ok": imu_ok, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
     speed = spd.OUTPUTS.vector(u=20.0, known=known)
     attitude = att.OUTPUTS.vector({"ok": 1.0, "roll_sd": roll_sd, "rejected_run": rejected}, strict=False)
     cond = cnd.OUTPUTS.vector({"run": run, "reasons": reasons}, strict=False)
     diag = dia.OUTPUTS.vector({}, strict=False)
-    lateral = lat.OUTPUTS.vector({"run_time": run_time, "diverged": diverged}, strict=False)
+    # the tyre bank: by default wide (nothing learned), or the given outputs
+    lateral = lat.OUTPUTS.vector(
+        {"run_time": run_time, "diverged": diverged, "tyre_log_sd": 0.3, "tyre_nis": 5.0, **(tyres or {})},
+        strict=False,
+    )
     stiffness = stf.OUTPUTS.vector({}, strict=False)
     sup.supervisor_stage(b.state, b.params, b.outputs, inputs, speed, attitude, cond, diag, lateral, stiffness)
     return int(b.outputs[sup.OUT_MODE]), int(b.outputs[sup.OUT_REASONS]), int(b.outputs[sup.OUT_VALID])
@@ -33,7 +50,8 @@ def _step(b, core_ok=1.0, known=1.0, run=1.0, run_time=10.0, reasons=0, diverged
     ("kw", "mode"),
     [
         ({"known": 0.0}, lay.MODE_INIT),
-        ({"core_ok": 0.0}, lay.MODE_FAULT),
+        ({"core_ok": 0.0}, lay.MODE_FAULT),  # no IMU
+        ({"core_ok": 0.0, "imu_ok": 1.0, "run": 0.0, "reasons": lay.REASON_STALE}, lay.MODE_DEGRADED),  # encoder
         ({"reasons": lay.REASON_GPS_LOST}, lay.MODE_DEGRADED),
         ({"run_time": 1.0}, lay.MODE_CONVERGING),
         ({}, lay.MODE_VALID),
@@ -64,10 +82,30 @@ def test_validity(settings, design):
     _, _, valid = _step(b)
     for bit in (lay.V_ROLL, lay.V_ROLL_RATE, lay.V_STEER, lay.V_RIDER_TORQUE, lay.V_FY_FRONT, lay.V_LAT_VEL):
         assert valid & bit
-    assert not valid & (lay.V_CORNERING | lay.V_CAMBER)  # never, until a learner with a covariance
+    assert not valid & (lay.V_CORNERING | lay.V_CAMBER)  # the tyre bank has not singled out a tyre
     tol = b.params[sup.P_ROLL_TOLERANCE]
     assert not _step(b, roll_sd=tol / 2.9)[2] & lay.V_ROLL  # 3 sigma beyond the tolerance
     assert not _step(b, rejected=10.0)[2] & lay.V_ROLL
     assert not _step(b, run_time=1.0)[2] & lay.V_RIDER_TORQUE
     assert b.outputs[sup.OUT_ROLL_SD] == pytest.approx(0.001)
     assert math.isfinite(b.outputs[sup.OUT_ROLL_SD])
+
+
+def test_tyre_validity_from_the_bank(settings, design):
+    """Concentrated and consistent for `tyre_settle` s: valid; a short-window inconsistency: invalid for
+    `tyre_hold` s; a wide posterior or an inconsistent model: never."""
+    b = sup.STAGE.alone(settings, design)
+    dt, settle, hold = b.params[sup.P_DT], b.params[sup.P_TYRE_SETTLE], b.params[sup.P_TYRE_HOLD]
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 0.87}
+    bits = lay.V_CORNERING | lay.V_CAMBER
+    n_settle = int(round(settle / dt))
+    valid = [_step(b, tyres=good)[2] & bits for _ in range(n_settle + 2)]
+    assert not any(valid[: n_settle - 1]) and valid[-1] == bits
+    assert not _step(b, tyres={**good, "tyre_nis_fast": 50.0})[2] & bits  # a sudden misfit
+    held = [_step(b, tyres=good)[2] & bits for _ in range(int(round(hold / dt)) - 1)]
+    assert not any(held)
+    b2 = sup.STAGE.alone(settings, design)
+    for _ in range(n_settle + 2):
+        wide = _step(b2, tyres={**good, "tyre_log_sd": 0.2})[2]
+        misfit = _step(b2, tyres={**good, "tyre_nis": 20.0})[2]
+        assert not (wide | misfit) & bits
