@@ -47,7 +47,7 @@ from numba import njit
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
 from ptw_rt.core.layout import REASON_SPEED_LOW
-from ptw_rt.core.stage import Layout, Stage
+from ptw_rt.core.stage import Layout, Stage, all_finite
 
 # ---- filter state x ----
 X_PHI = 0  # rad, roll (SAE: positive leaning right)
@@ -551,14 +551,6 @@ def build_params(settings, design) -> np.ndarray:
 
 
 @njit(cache=True)
-def _all_finite(v: np.ndarray, n: int) -> bool:
-    for i in range(n):
-        if not math.isfinite(v[i]):
-            return False
-    return True
-
-
-@njit(cache=True)
 def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.ndarray, speed: np.ndarray) -> None:
     """One cycle from the inputs and speed stages' outputs: standstill detection (the gyros then read their
     biases), the speed's uncertainty (the speed filter dead-reckons on the accelerometer in a GPS dropout),
@@ -593,7 +585,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         inputs[inp.OUT_COURSE_NEW] != 0.0,
         standstill,
     )
-    out[OUT_OK] = 1.0 if st[ST_INIT] == 1.0 and _all_finite(out, N_FILTER_OUT) else 0.0
+    out[OUT_OK] = 1.0 if st[ST_INIT] == 1.0 and all_finite(out, N_FILTER_OUT) else 0.0
     out[OUT_REJECTED_RUN] = st[ST_REJECTED]
 
 

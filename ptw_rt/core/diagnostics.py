@@ -24,7 +24,7 @@ from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
 from ptw_rt.core import uihosmo as uh
 from ptw_rt.core.force_observers import STA_STATE_SIZE, lateral_yaw_constants, sta_step
-from ptw_rt.core.stage import Layout, Stage, v1, v3
+from ptw_rt.core.stage import Layout, Stage, all_finite, v1, v3
 
 STATE = Layout(
     "ST_",
@@ -104,14 +104,6 @@ def build_params(settings, design) -> np.ndarray:
 
 
 @njit(cache=True)
-def _all_finite(v: np.ndarray, n: int) -> bool:
-    for i in range(n):
-        if not math.isfinite(v[i]):
-            return False
-    return True
-
-
-@njit(cache=True)
 def diagnostics_stage(
     st: np.ndarray,
     prm: np.ndarray,
@@ -163,8 +155,8 @@ def diagnostics_stage(
         roll_uio = uh_out[uh.OUT_PHI]
         tau_uio = uh_out[uh.OUT_TAU]
         if (
-            not _all_finite(uh_out, uh.OUT_SIZE)
-            or not _all_finite(uh_state, uh.STATE_SIZE)
+            not all_finite(uh_out, uh.OUT_SIZE)
+            or not all_finite(uh_state, uh.STATE_SIZE)
             or abs(roll_uio) > prm[P_MAX_ROLL]
             or abs(tau_uio) > prm[P_MAX_TORQUE]
         ):

@@ -20,8 +20,6 @@ reset (diagnostics' OUT_RESET) restarts it.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
@@ -32,7 +30,7 @@ from ptw_rt.core import inputs as inp
 from ptw_rt.core import kalman as kf
 from ptw_rt.core import speed as spd
 from ptw_rt.core import tyre_bank as tb
-from ptw_rt.core.stage import Layout, Stage, v1, v2, v3
+from ptw_rt.core.stage import Layout, Stage, all_finite, v1, v2, v3
 
 MAX_HYPOTHESES = 32  # the bank's state is laid out for this many (the design file has `len(tb_scale)`)
 
@@ -135,14 +133,6 @@ def build_params(settings, design) -> np.ndarray:
 
 
 @njit(cache=True)
-def _all_finite(v: np.ndarray, n: int) -> bool:
-    for i in range(n):
-        if not math.isfinite(v[i]):
-            return False
-    return True
-
-
-@njit(cache=True)
 def lateral_stage(
     st: np.ndarray,
     prm: np.ndarray,
@@ -223,7 +213,7 @@ def lateral_stage(
         for k in range(kf.N_Z):
             kf_out[k] = bank_out[tb.OUT_Z + k]
         if (
-            not _all_finite(kf_out, kf.N_Z)
+            not all_finite(kf_out, kf.N_Z)
             or abs(kf_out[kf.PHI]) > prm[P_MAX_ROLL]
             or abs(kf_out[kf.TAU]) > prm[P_MAX_TORQUE]
         ):

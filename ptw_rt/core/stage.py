@@ -33,6 +33,7 @@ allocation: slices and reshapes of contiguous buffers). ``pack`` builds a buffer
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -202,3 +203,12 @@ def v2(buf: np.ndarray, index: np.ndarray, k: int) -> np.ndarray:
 @njit(cache=True, inline="always")
 def v3(buf: np.ndarray, index: np.ndarray, k: int) -> np.ndarray:
     return buf[index[k, 0] : index[k, 1]].reshape((index[k, 2], index[k, 3], index[k, 4]))
+
+
+@njit(cache=True)
+def all_finite(v: np.ndarray, n: int) -> bool:
+    """The first n entries are finite (the stages' guard before they trust an observer's state)."""
+    for i in range(n):
+        if not math.isfinite(v[i]):
+            return False
+    return True

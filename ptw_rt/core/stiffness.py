@@ -27,7 +27,7 @@ from ptw_rt.core import kalman as kf
 from ptw_rt.core import lateral as lat
 from ptw_rt.core import speed as spd
 from ptw_rt.core.params import virtual_output_coefficients
-from ptw_rt.core.stage import Layout, Stage, v1, v2, v3
+from ptw_rt.core.stage import Layout, Stage, all_finite, v1, v2, v3
 
 N_THETA = 4  # [C_af, C_gf, C_ar, C_gr]
 
@@ -131,14 +131,6 @@ def build_params(settings, design) -> np.ndarray:
 
 
 @njit(cache=True)
-def _all_finite(v: np.ndarray, n: int) -> bool:
-    for i in range(n):
-        if not math.isfinite(v[i]):
-            return False
-    return True
-
-
-@njit(cache=True)
 def stiffness_stage(
     st: np.ndarray,
     prm: np.ndarray,
@@ -231,7 +223,7 @@ def stiffness_stage(
                     st[ST_EXCITED_TIME + k] += dt
         x_ad = ad_state[ad.X0 : ad.X1]
         if (
-            not _all_finite(ad_state, ad.STATE_SIZE)
+            not all_finite(ad_state, ad.STATE_SIZE)
             or abs(x_ad[ad.FYF]) > prm[P_MAX_FORCE]
             or abs(x_ad[ad.FYR]) > prm[P_MAX_FORCE]
             or abs(x_ad[ad.VY]) > prm[P_MAX_LAT_VEL]
