@@ -227,7 +227,8 @@ class CandumpReader(Iterator[LogFrame]):
     slightly before an earlier one), ``discontinuities`` (count) and ``discontinuity_lines`` ((line_no, from,
     to) of each confirmed time-base change), ``malformed_lines`` and ``problems`` ((line_no, reason) pairs; the
     first ``MAX_RECORDED`` of each). A warning naming the file and line is logged for the first
-    ``max_warnings`` bad lines, then one summary warning at the end.
+    ``max_warnings`` bad lines, then one summary warning at the end; likewise for the discontinuities unless
+    ``warn_discontinuities`` is set to False (a consumer reporting them itself).
     """
 
     def __init__(
@@ -255,6 +256,8 @@ class CandumpReader(Iterator[LogFrame]):
             self.name = getattr(source, "name", "<stream>")
             self._stream = source
         self.max_warnings = max_warnings
+        # False: a consumer that reports the discontinuities itself (replay: one line saying what it did)
+        self.warn_discontinuities = True
         self.max_jump = float(max_jump)
         self.reorder_tolerance = float(reorder_tolerance)
         self.confirm = max(1, int(confirm))
@@ -368,7 +371,7 @@ class CandumpReader(Iterator[LogFrame]):
         hidden = self.malformed - self.max_warnings
         if hidden > 0:
             log.warning("%s: %d more bad candump lines skipped (%d in total)", self.name, hidden, self.malformed)
-        if self.discontinuities > self.max_warnings:
+        if self.discontinuities > self.max_warnings and self.warn_discontinuities:
             log.warning("%s: %d discontinuities of the time stamps in total", self.name, self.discontinuities)
 
     def _consistent(self, t: float, reference: float) -> bool:
@@ -407,7 +410,7 @@ class CandumpReader(Iterator[LogFrame]):
             first = chain[0][0]
             if len(self.discontinuity_lines) < MAX_RECORDED:
                 self.discontinuity_lines.append((first.line_no, self._last, first.timestamp))
-            if self.discontinuities > self.max_warnings:
+            if self.discontinuities > self.max_warnings or not self.warn_discontinuities:
                 return self._take(chain)
             log.warning(
                 "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f); taken as a discontinuity of the log",

@@ -49,6 +49,12 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
         (["replay", log, "--out", out / "r.log", "--design-file", d["size_lie"]], 2),
         (["replay", hostile_logs["dev_zero"], "--out", out / "z.log"], 2),
         (["replay", hostile_logs["fifo"], "--out", out / "f.log"], 2),
+        # replay's outputs: one line, exit 74 (EX_IOERR)
+        (["replay", hostile_logs["gap_2h"], "--out", "/dev/full"], 74),
+        (["replay", hostile_logs["gap_2h"], "--out", "/sys/ptw-rt-hostile.log"], 74),
+        (["replay", hostile_logs["gap_2h"], "--out", out], 74),
+        (["replay", hostile_logs["swapped_pairs"], "--out", out / "c.log", "--csv", "/dev/full"], 74),
+        (["replay", log, "--out", out / "g.log", "--max-gap", "nan"], 2),
         (["demo", "--config", c["long_bad_text"], "--out", out / "demo"], 2),
     ]
     results = run_many([args for args, _ in commands], cwd=tmp_path, timeout=TIMEOUT)
@@ -73,6 +79,10 @@ def test_replay_of_hostile_logs_rejects_lines_and_finishes(hostile_logs, tmp_pat
         "long_line",
         "random_bytes",
         "empty",
+        "gap_2h",
+        "gap_3s",
+        "backwards_30s",
+        "swapped_pairs",
     ]
     src = tmp_path / "logs"
     src.mkdir()
@@ -83,11 +93,16 @@ def test_replay_of_hostile_logs_rejects_lines_and_finishes(hostile_logs, tmp_pat
     assert proc.returncode == 0, proc.stderr[-2000:]
     summaries = {json.loads(line)["log"].rsplit("/", 1)[-1][:-4]: json.loads(line) for line in proc.stdout.splitlines()}
     assert set(summaries) == set(names)
+    clock_only = {"empty", "gap_2h", "gap_3s", "backwards_30s", "swapped_pairs"}  # no bad line, a bad clock
     for name, summary in summaries.items():
-        if name != "empty":
+        if name not in clock_only:
             assert summary["malformed_lines"] >= 1, (name, summary)
-        # nothing runs away: 2 s of log at most (phase 2 bounds output by content for real gaps too)
-        assert summary["cycles"] <= 250, (name, summary)
+        # nothing runs away: cycles bounded by the content (2 s blocks) and the bridged gaps (--max-gap 5 s)
+        content_s = {"gap_2h": 4.0, "gap_3s": 7.0, "backwards_30s": 4.0}.get(name, 2.0)
+        assert summary["cycles"] <= content_s * 100 + 50, (name, summary)
+    assert summaries["gap_2h"]["segments"] == summaries["backwards_30s"]["segments"] == 2
+    assert summaries["gap_3s"]["segments"] == 1 and summaries["swapped_pairs"]["reordered"] > 0
+    assert proc.stderr.count("segment 2 starts here") == 2
 
 
 @pytest.mark.parametrize("state", ["fifo", "value_x1000"])
