@@ -7,12 +7,15 @@ Exit codes of ``ptw-rt`` (README, "Exit codes"):
   its summary line; ``design --check``: a check failed).
 * 2 ``EXIT_USER``: a problem the user must fix, nothing done (configuration, design file, an input file, an
   argument). ``ptw-rt.service`` does not restart on it (``RestartPreventExitStatus=2``).
+* 69 ``EXIT_UNAVAILABLE`` (sysexits' EX_UNAVAILABLE): ``run`` cannot open the CAN bus at start-up (no such
+  interface, link down). systemd restarts the daemon: the interface may come later.
 * 74 ``EXIT_OUTPUT`` (sysexits' EX_IOERR): an output cannot be written (disk full, permission, a directory).
 """
 
 EXIT_OK = 0
 EXIT_PARTIAL = 1
 EXIT_USER = 2
+EXIT_UNAVAILABLE = 69
 EXIT_OUTPUT = 74
 
 

@@ -8,9 +8,11 @@ encode); ``cycle(now)`` stops at the Estimates (evaluation, which scores them an
 
 The process around the cycle (the daemon) reports its own health at the edge, never through the estimator:
 ``status`` (overrun count, worst cycle time) and ``process_reasons`` (REASON_OVERRUN, REASON_SEND_FAILURE) go
-straight into EST_Status. `drive_log` is the log-clocked driver (replay, evaluation): a cycle every
-`sample_time` of log time; the frames stamped up to a cycle's time belong to it; a jump of the log's clock
-(forward by more than `max_gap`, or backwards) ends a segment and the next starts from reset inputs.
+straight into EST_Status; ``process_degraded`` publishes a VALID or CONVERGING mode as DEGRADED.
+
+`drive_log` is the log-clocked driver (replay, evaluation): a cycle every `sample_time` of log time; the frames
+stamped up to a cycle's time belong to it; a jump of the log's clock (forward by more than `max_gap`, or
+backwards) ends a segment and the next starts from reset inputs.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.core.estimator import Estimator
-from ptw_rt.core.layout import new_estimates, new_sample
+from ptw_rt.core.layout import E_MODE, MODE_CONVERGING, MODE_DEGRADED, MODE_VALID, new_estimates, new_sample
 from ptw_rt.design.file import load_design
 from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.edge.outputs import OutputEncoder
@@ -33,6 +35,7 @@ from ptw_rt.settings import Settings, load_settings
 
 Frame = tuple[int, bytes]
 
+_DEGRADABLE = (float(MODE_CONVERGING), float(MODE_VALID))
 DEFAULT_MAX_GAP_S = 5.0  # drive_log: a longer gap in a log's time stamps ends a segment
 DEFAULT_REORDER_TOLERANCE_S = 0.02  # drive_log: frames up to this much out of order are taken as they come
 
@@ -53,6 +56,9 @@ class CycleRunner:
         # the process's own health for EST_Status (the daemon sets them; a replay leaves them at 0: deterministic)
         self.status = {"overrun_count": 0, "cycle_time_us": 0}
         self.process_reasons = 0
+        # the process cannot keep its period (the daemon's overrun rule): a VALID or CONVERGING mode is published
+        # as DEGRADED while set
+        self.process_degraded = False
 
     def on_frame(self, timestamp: float, frame_id: int, data: bytes, extended: bool = False) -> None:
         self.tracker.on_frame(timestamp, frame_id, data, extended=extended)
@@ -75,6 +81,8 @@ class CycleRunner:
         """The whole cycle at `now`: decode, track, step, encode. Returns the frames to send in this cycle."""
         index = self.cycles
         estimates = self.cycle(now)
+        if self.process_degraded and estimates[E_MODE] in _DEGRADABLE:
+            estimates[E_MODE] = MODE_DEGRADED  # the step writes every output each cycle: nothing carries over
         return self.encoder.frames(estimates, index, self.status, self.tracker.stale_bits(), self.process_reasons)
 
     def restart_segment(self) -> None:
