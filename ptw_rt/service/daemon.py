@@ -11,9 +11,9 @@ Nothing that can block or take long runs in the loop's thread; the loop only han
   filters in software, which a ``recv(timeout=0)`` drain would mistake for an empty queue) and stamps them with
   the monotonic clock, so the tracker's timeouts use the loop's clock. A receive failure (the bus disappeared)
   closes the bus; the loop reopens it every second while it keeps its period (``bus_reopens``).
-* Sending never holds the loop. On SocketCAN (its socket made non-blocking, ``send(timeout=0)``: a full queue or
-  a bus-off controller is ENOBUFS at once) and python-can's virtual bus the loop sends itself; any other driver
-  (which may block in ``send``) gets a sender thread: ``bus.send`` with a bounded timeout, a queue of
+* Sending never holds the loop. On SocketCAN (``send(timeout=0)``: python-can polls the socket for room first, a
+  full queue or a bus-off controller is an error at once) and python-can's virtual bus the loop sends itself; any
+  other driver (which may block in ``send``) gets a sender thread: ``bus.send`` with a bounded timeout, a queue of
   ``SEND_QUEUE_FRAMES`` frames that drops the oldest when the bus cannot keep up (``send_dropped``). Either way a
   frame is tried ``1 + send_retries`` times; failures (any ``can.CanError``/``OSError``) are counted
   (``send_failures``, ``send_errors`` for every failed attempt), logged at most once per
@@ -222,9 +222,10 @@ def _send_frame(d: Daemon, bus: can.BusABC, fid: int, data: bytes, timeout: floa
 
 
 def _never_blocks(bus: can.BusABC) -> bool:
-    """True for the buses the loop may send on itself: SocketCAN (its socket made non-blocking here, and sent to
-    with ``timeout=0``: a full queue is ENOBUFS/EAGAIN at once) and python-can's in-process virtual bus. Every
-    other driver (USB adapters, serial slcan, anything unknown) may block in ``send``: the sender thread's job."""
+    """True for the buses the loop may send on itself with ``timeout=0``: SocketCAN (python-can polls the socket
+    for room with a zero timeout before it sends, so the send cannot wait; a full queue or a bus-off controller is
+    an immediate error) and python-can's in-process virtual bus. Every other driver (USB adapters, serial slcan,
+    anything unknown) may block in ``send``: the sender thread's job."""
     try:
         from can.interfaces.virtual import VirtualBus
 
@@ -233,9 +234,8 @@ def _never_blocks(bus: can.BusABC) -> bool:
         from can.interfaces.socketcan import SocketcanBus
 
         if type(bus) is SocketcanBus:
-            bus.socket.setblocking(False)
             return True
-    except (ImportError, AttributeError, OSError):
+    except ImportError:
         pass
     return False
 
