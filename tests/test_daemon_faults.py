@@ -353,30 +353,34 @@ def test_missed_cycles_cost(tmp_path):
 def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frames):
     channel = _channel()
     daemon = _daemon(tmp_path, channel=channel)
-    trace: list[tuple[float, int]] = []
-    stalls = {2.5: 0.015, 4.0: 0.065}  # at these ride times: a 1-cycle, then a 5-cycle stall of the loop
+    trace: list[tuple[float, int, int]] = []  # (ride time, mode, overruns so far)
+    # at these ride times the loop stalls 25 ms (1 missed cycle: 10 ms is the period, 20 ms still on time), then
+    # 65 ms (5 missed cycles)
+    stalls = {2.5: 0.025, 4.0: 0.065}
     t0 = []
 
     def on_cycle(now, e):
         if not t0:
             t0.append(now)
-        trace.append((now - t0[0], int(e[E_MODE])))
+        trace.append((now - t0[0], int(e[E_MODE]), daemon.overruns))
         for at in list(stalls):
             if now - t0[0] >= at:
                 time.sleep(stalls.pop(at))
 
     daemon.on_cycle = on_cycle
     _run(daemon, 5.5, Feeder(channel, ride_frames, duration=6.0))
-    modes = dict(trace)
-    before = [m for t, m in trace if 2.0 <= t < 2.5]
-    isolated = [m for t, m in trace if 2.5 <= t < 3.9]
-    burst = [m for t, m in trace if 4.0 <= t < 4.2]
-    after = [m for t, m in trace if 5.2 <= t]
-    assert modes and all(m == MODE_VALID for m in before), before
+    assert not stalls
+    before = [m for t, m, _ in trace if 2.0 <= t < 2.5]
+    isolated = [m for t, m, _ in trace if 2.5 <= t < 3.9]
+    burst = [m for t, m, _ in trace if 4.0 <= t < 4.2]
+    after = [m for t, m, _ in trace if 5.2 <= t]
+    missed_isolated = next(n for t, _, n in trace if t >= 3.0) - next(n for t, _, n in trace if t >= 2.4)
+    assert 1 <= missed_isolated <= OverrunRule().limit, missed_isolated
+    assert before and all(m == MODE_VALID for m in before), before
     assert all(m == MODE_VALID for m in isolated), isolated  # counted, VALID kept
     assert MODE_DEGRADED in burst  # 5 missed cycles within a second: DEGRADED ...
     assert all(m == MODE_VALID for m in after)  # ... for the window (1 s), then VALID again
-    assert daemon.overruns >= 5 and daemon.overrun_degraded_cycles <= 110
+    assert daemon.overruns >= 6 and daemon.overrun_degraded_cycles <= 110
 
 
 # ---------------------------------------------------------------------- reload
@@ -402,18 +406,26 @@ def test_reload_of_a_large_config_misses_no_cycle(notify, tmp_path, ride_frames)
     trace: list[tuple[float, int]] = []
     asked: list[float] = []
 
+    overruns: list[int] = []  # at the request and a second later
+    swapped: list[int] = []  # reloads a second after the request
+
     def on_cycle(now, e):
         trace.append((now, int(e[E_MODE])))
         if not asked and daemon.mode == MODE_VALID and len(trace) > 250:
             asked.append(now)
-            overruns_before.append(daemon.overruns)
+            overruns.append(daemon.overruns)
             daemon.request_reload()
+        elif asked and len(overruns) == 1 and now >= asked[0] + 1.0:
+            overruns.append(daemon.overruns)
+            swapped.append(daemon.reloads)
 
-    overruns_before: list[int] = []
     daemon.on_cycle = on_cycle
     _run(daemon, 4.5, Feeder(channel, ride_frames, duration=5.0))
     assert asked and daemon.reloads == 1 and daemon.reload_failures == 0
-    assert daemon.overruns - overruns_before[0] == 0
+    # in the loop this reload cost ~20 missed cycles (0.2 s of parsing); off it, none: up to 2 are tolerated for a
+    # machine loaded by other jobs (2 keep VALID by the overrun rule, so the mode check below still holds)
+    assert swapped == [1]  # swapped in within the second
+    assert len(overruns) == 2 and overruns[1] - overruns[0] <= OverrunRule().limit
     window = [m for now, m in trace if asked[0] <= now <= asked[0] + 1.0]
     assert window and all(m == MODE_VALID for m in window), window
     # systemd's reload protocol: RELOADING=1 with MONOTONIC_USEC, then READY=1
@@ -446,7 +458,7 @@ def test_slow_reload_runs_off_the_loop(monkeypatch, notify, tmp_path, ride_frame
     daemon.on_cycle = on_cycle
     _run(daemon, 2.5)
     assert daemon.reloads == 1
-    assert daemon.overruns - marks["overruns"] <= 1
+    assert daemon.overruns - marks["overruns"] <= OverrunRule().limit
     _assert_pinged_throughout(notify, 2.5)
 
 
@@ -468,6 +480,43 @@ def test_invalid_reload_keeps_the_running_config(notify, tmp_path):
     assert any("config not reloaded" in line and "sample_time" in line for line in lines)
     assert len(notify.with_key("RELOADING=1")) == 1 and len(notify.with_key("READY=1")) == 2  # start + reload
     assert daemon.cycles >= 140
+
+
+def test_sighup_to_the_process_as_systemd_sends_it(notify, tmp_path):
+    """``systemctl reload``: SIGHUP to ``ptw-rt run``; RELOADING=1 (MONOTONIC_USEC) then READY=1 on NOTIFY_SOCKET,
+    and SIGTERM afterwards stops it cleanly (STOPPING=1, exit 0)."""
+    env = {**os.environ, "NOTIFY_SOCKET": notify.path, "WATCHDOG_USEC": "2000000"}
+    env.pop("WATCHDOG_PID", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ptw_rt", "run", "--interface", "virtual", "--channel", _channel()]
+        + ["--state-file", str(tmp_path / "s.json"), "--duration", "60"],
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+
+    def wait_for(key: str, count: int, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while len(notify.with_key(key)) < count and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.02)
+        assert len(notify.with_key(key)) >= count, (key, notify.messages)
+
+    try:
+        wait_for("READY=1", 1, 90)
+        proc.send_signal(signal.SIGHUP)
+        wait_for("READY=1", 2, 10)
+        proc.send_signal(signal.SIGTERM)
+        err = proc.communicate(timeout=30)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err[-2000:]
+    keys = [m.split("\n")[0].split("=")[0] for _, m in notify.messages if not m.startswith(("STATUS=", "WATCHDOG"))]
+    assert keys == ["READY", "RELOADING", "READY", "STOPPING"], notify.messages
+    reloading = notify.with_key("RELOADING=1")[0][1]
+    assert "MONOTONIC_USEC=" in reloading
+    assert "SIGHUP: config" in err and "reloaded" in err and "Traceback" not in err
 
 
 # ---------------------------------------------------------------------- restart with learned stiffness

@@ -181,38 +181,41 @@ def replay_log(
         writer = CandumpWriter(out, channel=channel)
         if csv_path is not None:
             csv = _open_output(Path(csv_path), "--csv")
-        try:
-            if csv is not None:
+        if csv is not None:
+            try:
                 csv.write("time," + ",".join(ESTIMATE_NAMES) + "\n")
-            write = writer.write
+            except OSError as exc:
+                raise _output_error(csv_path, exc) from None
+        write = writer.write
 
-            def on_frames(now: float, frames: list[tuple[int, bytes]]) -> None:
-                nonlocal frames_out
+        def on_frames(now: float, frames: list[tuple[int, bytes]]) -> None:
+            nonlocal frames_out
+            try:
+                for fid, data in frames:
+                    write(now, fid, data)
+            except OSError as exc:
+                raise _output_error(out_log, exc) from None
+            frames_out += len(frames)
+
+        def on_cycle(now: float, estimates: np.ndarray) -> None:
+            nonlocal t_last
+            m = int(estimates[E_MODE])
+            if 0 <= m < len(mode_counts):
+                mode_counts[m] += 1
+            if csv is not None:
                 try:
-                    for fid, data in frames:
-                        write(now, fid, data)
+                    csv.write(_csv_row(now, estimates))
                 except OSError as exc:
-                    raise _output_error(out_log, exc) from None
-                frames_out += len(frames)
+                    raise _output_error(csv_path, exc) from None
+            t_last = now
 
-            def on_cycle(now: float, estimates: np.ndarray) -> None:
-                nonlocal t_last
-                m = int(estimates[E_MODE])
-                if 0 <= m < len(mode_counts):
-                    mode_counts[m] += 1
-                if csv is not None:
-                    try:
-                        csv.write(_csv_row(now, estimates))
-                    except OSError as exc:
-                        raise _output_error(csv_path, exc) from None
-                t_last = now
+        def on_segment(brk: SegmentBreak) -> None:
+            nonlocal duration, t_first
+            duration += max(0.0, t_last - t_first)  # the log's content: the gaps between segments do not count
+            t_first = brk.t_to
+            feed.on_segment(brk)
 
-            def on_segment(brk: SegmentBreak) -> None:
-                nonlocal duration, t_first
-                duration += max(0.0, t_last - t_first)  # the log's real content: the gaps between segments not
-                t_first = brk.t_to
-                feed.on_segment(brk)
-
+        try:
             cycles = (
                 0
                 if first is None
@@ -220,9 +223,9 @@ def replay_log(
                     feed, runner, on_cycle, on_frames=on_frames, max_gap=max_gap, on_segment=on_segment, stats=stats
                 )
             )
-            duration += max(0.0, t_last - t_first)
-        except OSError as exc:  # a write error not caught above (the CSV header)
-            raise _output_error(out_log if csv is None else csv_path, exc) from None
+        except OSError as exc:  # output errors are ReplayOutputError by now: this is the input failing (EIO ...)
+            raise UserFacingError(f"cannot read candump log {in_path}: {exc.strerror or exc}") from None
+        duration += max(0.0, t_last - t_first)
         for stream, path in ((out, out_log), (csv, csv_path)):
             if stream is not None:
                 try:
