@@ -252,6 +252,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
     p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
+    p.add_argument(
+        "--max-gap",
+        type=float,
+        default=None,
+        metavar="S",
+        help="a gap in a log's time stamps longer than this ends a segment; the next starts from reset inputs "
+        "(default: 5 s)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines on stderr")
     p.set_defaults(handler=_replay)
 
@@ -301,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.handler(args) or 0)
     except UserFacingError as exc:
         print(f"ptw-rt {args.command}: {exc}", file=sys.stderr)
-        return 2
+        return int(getattr(exc, "exit_code", 2))
     except ModuleNotFoundError as exc:
         message = missing_extra(exc)
         if message is None:

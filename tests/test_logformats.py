@@ -4,6 +4,7 @@ own writers replays to the same estimates as its candump original; sniffing; not
 from __future__ import annotations
 
 import io
+import json
 import os
 import random
 import shutil
@@ -314,9 +315,12 @@ def test_directory_replay_takes_every_format_and_lists_failures(ride, tmp_path):
     (src / "truth.csv").write_text("time,roll\n0.0,0.1\n")  # not a CAN CSV: not taken from a directory
     (src / "junk.asc").write_bytes(b"\x00\x01 not a log\n" * 10)
     proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "2", "--no-progress"], tmp_path)
-    assert proc.returncode == 2, proc.stderr
-    assert [line for line in proc.stderr.splitlines() if line.startswith("error: ")] == [
-        f"error: {src / 'junk.asc'}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 frame in the first 64 KiB)"
-    ]
+    # a bad log of a directory run is a partial failure (exit 1, EXIT_PARTIAL), not a bad command (2)
+    assert proc.returncode == 1, proc.stderr
+    junk = f"{src / 'junk.asc'}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 frame in the first 64 KiB)"
+    assert [line for line in proc.stderr.splitlines() if line.startswith("error: ")] == [f"error: {junk}"]
+    assert "1 of 4 logs failed" in proc.stderr, proc.stderr
+    summaries = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert [s.get("error") for s in summaries] == [junk, None, None, None]  # job order: junk.asc sorts first
     outs = sorted(p.name for p in (tmp_path / "out").iterdir())
     assert outs == ["r_blf.blf", "r_candump.log", "r_csv.csv"]

@@ -16,7 +16,9 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import math
 import os
+import stat
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -28,12 +30,13 @@ import numpy as np
 
 from ptw_rt._numba_cache import announce_compile
 from ptw_rt.core.layout import E_MODE, ESTIMATE_NAMES, MODE_NAMES
-from ptw_rt.edge.cycle import CycleRunner, build_runner, drive_log
-from ptw_rt.errors import UserFacingError
+from ptw_rt.edge.cycle import DEFAULT_MAX_GAP_S, CycleRunner, DriveStats, SegmentBreak, build_runner, drive_log
+from ptw_rt.errors import EXIT_OK, EXIT_OUTPUT, EXIT_PARTIAL, UserFacingError
 from ptw_rt.io.logformats import (
     EXTENSIONS,
     EmptyLogError,
     LogFormatError,
+    LogStats,
     detect_format,
     open_log,
     open_writer,
@@ -41,6 +44,7 @@ from ptw_rt.io.logformats import (
 )
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
+from ptw_rt.untrusted import file_kind
 
 __all__ = ["replay_log", "run_replay"]
 
@@ -49,20 +53,127 @@ log = logging.getLogger(__name__)
 DEFAULT_CHANNEL = "vcan0"
 
 
-def _frames(
-    first, frames: Iterator, skipped: list[int], progress: Callable[[], None] | None = None
-) -> Iterator[tuple[float, int, bytes]]:
-    """(timestamp, id, data) of the 11-bit data frames; 29-bit frames are counted in skipped[0] (remote, error
-    and CAN FD frames in the reader's stats). ``progress()`` is called every 4096 frames."""
-    n = 0
-    for timestamp, frame_id, data, extended in itertools.chain((first,), frames):
-        if extended:
-            skipped[0] += 1
-            continue
-        yield timestamp, frame_id, data
-        n += 1
-        if progress is not None and not n & 4095:
-            progress()
+class _Feed:
+    """The log's frames (``open_log``, any format) for ``drive_log`` as (timestamp, id, data); 29-bit frames
+    counted in ``skipped`` (remote, error and CAN FD frames in the reader's stats). Knows the line (record) of
+    the frame it gave last and reports the reader's discontinuities that the cycle driver bridges (one line
+    each); those that end a segment are reported by ``on_segment``. ``progress()`` is called every 4096 frames.
+    """
+
+    def __init__(
+        self,
+        first: tuple[float, int, bytes, bool],
+        frames: Iterator[tuple[float, int, bytes, bool]],
+        stats: LogStats,
+        name: str,
+        max_gap: float,
+        progress: Callable[[], None] | None = None,
+    ) -> None:
+        self.first = first
+        self.frames = frames
+        self.stats = stats
+        self.name = name
+        self.max_gap = max_gap
+        self.progress = progress
+        self.skipped = 0
+        self.line = 0
+        self._seen = 0  # reader discontinuities seen so far
+        self._pending: tuple | None = None  # (line, from, to) of a discontinuity not yet reported
+
+    def __iter__(self) -> Iterator[tuple[float, int, bytes]]:
+        stats = self.stats
+        reader = stats.reader  # the time rule's counts, read directly: this loop runs per frame
+        progress = self.progress
+        n = 0
+        for timestamp, frame_id, data, extended in itertools.chain((self.first,), self.frames):
+            if self._pending is not None:  # the cycle driver took the last frame without a new segment
+                self._report_bridged()
+            if extended:
+                self.skipped += 1
+                continue
+            if reader.discontinuities != self._seen:
+                self._seen = reader.discontinuities
+                lines = reader.discontinuity_lines
+                if len(lines) >= self._seen:
+                    self._pending = lines[self._seen - 1]
+            self.line = stats.line
+            yield timestamp, frame_id, data
+            n += 1
+            if progress is not None and not n & 4095:
+                progress()
+        if self._pending is not None:
+            self._report_bridged()
+
+    def _report_bridged(self) -> None:
+        line, t_from, t_to = self._pending
+        self._pending = None
+        log.warning(
+            "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f): bridged, the gap is within --max-gap %g s "
+            "(inputs stale meanwhile)",
+            self.name,
+            line,
+            t_to - t_from,
+            t_from,
+            t_to,
+            self.max_gap,
+        )
+
+    def on_segment(self, brk: SegmentBreak) -> None:
+        self._pending = None
+        what = f"a gap longer than --max-gap {self.max_gap:g} s" if brk.kind == "gap" else "the clock going back"
+        log.warning(
+            "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f), %s: segment %d starts here from reset inputs "
+            "(the estimator keeps its learned tyre stiffness)",
+            self.name,
+            self.line,
+            brk.jump,
+            brk.t_from,
+            brk.t_to,
+            what,
+            brk.segment,
+        )
+
+
+class ReplayOutputError(UserFacingError):
+    """An output of the replay cannot be written (disk full, permission, not a file)."""
+
+    exit_code = EXIT_OUTPUT
+
+
+def _output_error(path: Path | str, exc: OSError) -> ReplayOutputError:
+    return ReplayOutputError(f"cannot write {path}: {exc.strerror or exc}")
+
+
+def _prepare_output(path: Path, what: str) -> None:
+    """Refuse a directory as an output file and create its parent; ReplayOutputError (one line) otherwise."""
+    try:
+        if path.is_dir():
+            raise ReplayOutputError(f"{what} {path} is a directory")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except (FileExistsError, NotADirectoryError):
+            raise ReplayOutputError(f"cannot write {path}: a parent of it is not a directory") from None
+    except OSError as exc:
+        raise _output_error(path, exc) from None
+
+
+def _open_output(path: Path, what: str) -> IO[str]:
+    """A text output file, opened for writing; ReplayOutputError (one line) when that is not possible."""
+    _prepare_output(path, what)
+    try:
+        return open(path, "w", encoding="ascii", newline="\n")
+    except OSError as exc:
+        raise _output_error(path, exc) from None
+
+
+def _open_log_writer(path: Path, channel: str) -> Any:
+    """The output log's writer (``open_writer``: candump or a python-can writer, from the extension);
+    ReplayOutputError (one line) when it cannot be opened."""
+    _prepare_output(path, "--out")
+    try:
+        return open_writer(path, channel=channel)
+    except OSError as exc:
+        raise _output_error(path, exc) from None
 
 
 # one printf-style template per row: "%.6f" / "%.10g" format floats exactly as f"{v:.6f}" / f"{v:.10g}" do
@@ -86,77 +197,123 @@ def replay_log(
     *,
     runner: CycleRunner | None = None,
     progress: Progress | None = None,
+    max_gap: float = DEFAULT_MAX_GAP_S,
 ) -> dict[str, Any]:
     """Replay one CAN log (any format of ``ptw_rt.io.logformats``); write the estimator's frames to ``out_log``
     (format from its extension) and the estimates to ``csv_path``.
 
-    Returns a summary: cycles, frames in/out, malformed records, log and wall duration, x real time, modes seen,
-    input health counters. Raises UserFacingError if the input cannot be opened, is not a CAN log or holds no
-    frame (``EmptyLogError``); ``progress`` (if given) is updated with the share of the log read.
+    Returns a summary: cycles, segments, frames in/out, rejected records by reason, reordered frames, time
+    discontinuities, log and wall duration, x real time, modes seen, input health counters. A gap in the log's
+    time stamps longer than ``max_gap`` seconds, or a jump back, ends a segment (``drive_log``), whatever the
+    format. Raises UserFacingError if the input cannot be opened, is not a CAN log or holds no frame
+    (``EmptyLogError``), ReplayOutputError (exit code ``EXIT_OUTPUT``) if an output cannot be written;
+    ``progress`` (if given) is updated with the share of the log read.
     """
     in_path, out_log = Path(in_path), Path(out_log)
     wall0 = time.perf_counter()
     runner = runner or build_runner(config, design_file)
     try:
         frames, stats = open_log(in_path)
+        # reported below, one line each, with what the replay did (bridged, or a new segment)
+        stats.reader.warn_discontinuities = False
         first = next(frames, None)
     except OSError as exc:  # FileNotFoundError, permissions, a directory ...
-        raise UserFacingError(f"cannot read CAN log {in_path}: {exc}") from exc
+        raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
     if first is None:
         frames.close()
         raise EmptyLogError(stats.no_frames_message())
     channel = (stats.channel if stats.format == "candump" else None) or DEFAULT_CHANNEL
-    skipped = [0]
+    tick = None if progress is None else (lambda: progress.update(stats.fraction))
+    feed = _Feed(first, frames, stats, str(in_path), max_gap, tick)
+    drive = DriveStats()
     mode_counts = [0] * len(MODE_NAMES)
     frames_out = 0
     t_first = first[0]
     t_last = t_first
+    duration = 0.0
     csv: IO[str] | None = None
-    out_log.parent.mkdir(parents=True, exist_ok=True)
+    writer: Any = None
     try:
-        with open_writer(out_log, channel=channel) as writer:
-            if csv_path is not None:
-                Path(csv_path).parent.mkdir(parents=True, exist_ok=True)
-                csv = open(csv_path, "w", encoding="ascii", newline="\n")
+        writer = _open_log_writer(out_log, channel)
+        if csv_path is not None:
+            csv = _open_output(Path(csv_path), "--csv")
+            try:
                 csv.write("time," + ",".join(ESTIMATE_NAMES) + "\n")
-            write = writer.write
+            except OSError as exc:
+                raise _output_error(csv_path, exc) from None
+        write = writer.write
 
-            def on_frames(now: float, frames: list[tuple[int, bytes]]) -> None:
-                nonlocal frames_out
-                for fid, data in frames:
+        def on_frames(now: float, out: list[tuple[int, bytes]]) -> None:
+            nonlocal frames_out
+            try:
+                for fid, data in out:
                     write(now, fid, data)
-                frames_out += len(frames)
+            except OSError as exc:
+                raise _output_error(out_log, exc) from None
+            frames_out += len(out)
 
-            def on_cycle(now: float, estimates: np.ndarray) -> None:
-                nonlocal t_last
-                m = int(estimates[E_MODE])
-                if 0 <= m < len(mode_counts):
-                    mode_counts[m] += 1
-                if csv is not None:
+        def on_cycle(now: float, estimates: np.ndarray) -> None:
+            nonlocal t_last
+            m = int(estimates[E_MODE])
+            if 0 <= m < len(mode_counts):
+                mode_counts[m] += 1
+            if csv is not None:
+                try:
                     csv.write(_csv_row(now, estimates))
-                t_last = now
+                except OSError as exc:
+                    raise _output_error(csv_path, exc) from None
+            t_last = now
 
-            tick = None if progress is None else (lambda: progress.update(stats.fraction))
-            cycles = drive_log(_frames(first, frames, skipped, tick), runner, on_cycle, on_frames=on_frames)
+        def on_segment(brk: SegmentBreak) -> None:
+            nonlocal duration, t_first
+            duration += max(0.0, t_last - t_first)  # the log's content: the gaps between segments do not count
+            t_first = brk.t_to
+            feed.on_segment(brk)
+
+        try:
+            cycles = drive_log(
+                feed, runner, on_cycle, on_frames=on_frames, max_gap=max_gap, on_segment=on_segment, stats=drive
+            )
+        except OSError as exc:  # output errors are ReplayOutputError by now: this is the input failing (EIO ...)
+            raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
+        duration += max(0.0, t_last - t_first)
+        for close, path in ((writer.close, out_log), (None if csv is None else csv.close, csv_path)):
+            if close is not None:
+                try:
+                    close()  # flushes: a full disk shows here
+                except OSError as exc:
+                    raise _output_error(path, exc) from None
     finally:
-        if csv is not None:
-            csv.close()
+        for close in (None if csv is None else csv.close, None if writer is None else writer.close):
+            if close is not None:
+                try:
+                    close()  # a second close is a no-op
+                except Exception:  # noqa: BLE001 - already failing: the first error is the one reported
+                    pass
         frames.close()
     if stats.malformed:
         log.warning("%s", stats.problems_line())
     wall = time.perf_counter() - wall0
-    duration = max(0.0, t_last - t_first)
     return {
         "log": str(in_path),
         "out": str(out_log),
         "csv": None if csv_path is None else str(csv_path),
         "cycles": cycles,
+        "segments": drive.segments,
         "format": stats.format,
         "frames_in": stats.frames,
         "frames_out": frames_out,
         "malformed_lines": stats.malformed,
         "malformed_line_numbers": stats.malformed_lines[:20],
-        "skipped_frames": skipped[0] + sum(stats.skipped.values()),
+        "rejected": {k: v for k, v in stats.rejected.items() if v},
+        "reordered": stats.reordered,
+        "late_frames": drive.late_frames,
+        "discontinuities": stats.discontinuities,
+        "discontinuity_lines": [line for line, _, _ in stats.discontinuity_lines[:20]],
+        "segment_breaks": [
+            {"kind": b.kind, "from": round(b.t_from, 6), "to": round(b.t_to, 6)} for b in drive.breaks[:20]
+        ],
+        "skipped_frames": feed.skipped + sum(stats.skipped.values()) + drive.bad_stamps,
         "log_duration_s": round(duration, 3),
         "wall_s": round(wall, 3),
         "x_real_time": round(duration / wall, 1) if wall > 0 else None,
@@ -177,17 +334,26 @@ def _collect_logs(paths: list[Path]) -> tuple[list[Path], bool]:
     files: list[Path] = []
     any_dir = False
     for p in paths:
-        if p.is_dir():
+        try:
+            st = p.stat()
+        except FileNotFoundError:
+            raise UserFacingError(f"CAN log not found: {p}") from None
+        except OSError as exc:
+            raise UserFacingError(f"cannot read CAN log {p}: {exc.strerror or exc}") from None
+        if stat.S_ISDIR(st.st_mode):
             any_dir = True
-            found = sorted(q for q in p.iterdir() if q.suffix.lower() in EXTENSIONS and q.is_file())
+            try:
+                found = sorted(q for q in p.iterdir() if q.suffix.lower() in EXTENSIONS and q.is_file())
+            except OSError as exc:
+                raise UserFacingError(f"cannot list directory {p}: {exc.strerror or exc}") from None
             found = [q for q in found if q.suffix.lower() != ".csv" or _is_can_csv(q)]
             if not found:
                 raise UserFacingError(f"no CAN logs in directory {p} ({', '.join(EXTENSIONS)})")
             files.extend(found)
-        elif p.is_file():
+        elif stat.S_ISREG(st.st_mode):
             files.append(p)
         else:
-            raise UserFacingError(f"CAN log not found: {p}")
+            raise UserFacingError(f"{p}: CAN log is {file_kind(st.st_mode)}, not a regular file")
     return files, any_dir
 
 
@@ -202,14 +368,16 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
     files, any_dir = _collect_logs(list(args.logs))
     if len(files) == 1 and not any_dir:
         if args.out.is_dir():
-            raise UserFacingError(f"--out {args.out} is a directory; with one input log --out names the output file")
+            raise ReplayOutputError(f"--out {args.out} is a directory; with one input log --out names the output file")
+        if args.csv is not None and args.csv.is_dir():
+            raise ReplayOutputError(f"--csv {args.csv} is a directory; with one input log --csv names a file")
         detect_format(files[0])  # not a CAN log, empty: one line now, before the estimator is compiled
         jobs = [(files[0], args.out, args.csv)]
     else:
         if args.out.exists() and not args.out.is_dir():
-            raise UserFacingError(f"--out {args.out} must be a directory when replaying several logs")
+            raise ReplayOutputError(f"--out {args.out} must be a directory when replaying several logs")
         if args.csv is not None and args.csv.exists() and not args.csv.is_dir():
-            raise UserFacingError(f"--csv {args.csv} must be a directory when replaying several logs")
+            raise ReplayOutputError(f"--csv {args.csv} must be a directory when replaying several logs")
         names = [f.name for f in files]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
@@ -227,20 +395,68 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
     return jobs
 
 
+_SHORT_KEYS = (
+    "log",
+    "out",
+    "cycles",
+    "segments",
+    "frames_in",
+    "frames_out",
+    "malformed_lines",
+    "rejected",
+    "reordered",
+    "discontinuities",
+    "x_real_time",
+    "modes",
+)
+
+
 def _short(summary: dict[str, Any]) -> dict[str, Any]:
-    keys = ("log", "out", "cycles", "frames_in", "frames_out", "malformed_lines", "x_real_time", "modes")
-    return {k: summary[k] for k in keys}
+    if "error" in summary:
+        return {"log": summary["log"], "error": summary["error"]}
+    return {k: summary[k] for k in _SHORT_KEYS}
 
 
-def _job(in_path: Path, out: Path, csv: Path | None, config: Path, design_file: Path | None) -> dict[str, Any]:
-    return replay_log(in_path, out, csv, config, design_file)
+def _failure(in_path: Path, exc: BaseException) -> dict[str, Any]:
+    """The summary of a log that could not be replayed: its error in one line."""
+    if isinstance(exc, UserFacingError):
+        text = str(exc)
+    else:  # a bug or an exhausted resource: named, without a traceback, and the other logs go on
+        text = f"internal error: {type(exc).__name__}: {exc}"
+    return {"log": str(in_path), "error": " ".join(text.split())[:500]}
+
+
+def _job(
+    in_path: Path, out: Path, csv: Path | None, config: Path, design_file: Path | None, max_gap: float
+) -> dict[str, Any]:
+    """One log of a parallel run, in a worker process: never raises (a bad log must not stop the others)."""
+    try:
+        return replay_log(in_path, out, csv, config, design_file, max_gap=max_gap)
+    except Exception as exc:
+        return _failure(in_path, exc)
+
+
+def _max_gap(args) -> float:
+    value = getattr(args, "max_gap", None)
+    if value is None:
+        return DEFAULT_MAX_GAP_S
+    if not (math.isfinite(value) and value > 0.0):
+        raise UserFacingError(f"--max-gap must be a positive number of seconds, got {value}")
+    return float(value)
 
 
 def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) -> int:
     """``ptw-rt replay``: one log -> ``--out`` is the output file; several logs or a directory -> ``--out`` is a
-    directory (same file names), processed in parallel. One JSON summary line per log on stdout."""
+    directory (same file names), processed in parallel. One JSON summary line per log on stdout (``error``:
+    the one-line reason a log was not replayed).
+
+    Exit codes (``ptw_rt.errors``): 0 every log replayed; 1 several logs and some failed (the others were
+    replayed); 2 nothing replayed, a problem with the inputs, configuration or arguments; 74 an output cannot be
+    written (one log; with several, a log whose output fails is one of the failures).
+    """
     out = out or sys.stdout
     err = err or sys.stderr
+    max_gap = _max_gap(args)
     jobs = _plan(args)
     config = Path(args.config)
     design_file = args.design_file
@@ -254,7 +470,7 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
     if len(jobs) == 1:
         src, dst, csv = jobs[0]
         bar = Progress(1.0, label=f"replay {src.name}", stream=err, delay=0.5) if progress else None
-        results[0] = replay_log(src, dst, csv, config, design_file, progress=bar)
+        results[0] = replay_log(src, dst, csv, config, design_file, progress=bar, max_gap=max_gap)
         if bar is not None:
             bar.finish()
     else:
@@ -262,15 +478,18 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
         bar = Progress(len(jobs), label="replay", stream=err) if progress else None
         with ProcessPoolExecutor(max_workers=workers) as pool:
             futures = {
-                pool.submit(_job, src, dst, csv, config, design_file): i for i, (src, dst, csv) in enumerate(jobs)
+                pool.submit(_job, src, dst, csv, config, design_file, max_gap): i
+                for i, (src, dst, csv) in enumerate(jobs)
             }
             for fut in as_completed(futures):
                 i = futures[fut]
                 try:
                     results[i] = fut.result()
-                except UserFacingError as exc:
+                except Exception as exc:  # the worker itself died (killed, out of memory): this log failed
+                    results[i] = _failure(jobs[i][0], exc)
+                if "error" in results[i]:
                     failures += 1
-                    message = str(exc)
+                    message = results[i]["error"]
                     where = str(jobs[i][0])
                     line = message if message.startswith(where) else f"{where}: {message}"
                     err.write(("\n" if bar is not None and bar.tty else "") + f"error: {line}\n")
@@ -279,4 +498,7 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
     for i in sorted(results):  # job order, not completion order: stable output
         out.write(json.dumps(_short(results[i])) + "\n")
     out.flush()
-    return 2 if failures else 0
+    if failures:
+        err.write(f"replay: {failures} of {len(jobs)} logs failed (their summary lines name the error)\n")
+        return EXIT_PARTIAL
+    return EXIT_OK

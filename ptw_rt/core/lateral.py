@@ -276,6 +276,7 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scales: np.ndarray, centre: float
     tb.set_prior(
         st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)], prm[P_BANK : P_BANK + tb.PARAM_SIZE], scales, centre, sd
     )
+    st[ST_BANK_OUT + tb.OUT_SCALE] = 0.0  # the bank has not run on this prior: report its centre until it does
 
 
 def scale_estimate(st: np.ndarray, prm: np.ndarray, out: np.ndarray) -> float:

@@ -185,6 +185,21 @@ class InputTracker:
         h.last_valid_time = timestamp
         self._fresh |= bit
 
+    def restart(self) -> None:
+        """Forget every input's state (values, freshness, rolling counters) as at construction; the cumulative
+        counters of ``summary`` are kept. For a new segment of a log after a time discontinuity: nothing seen
+        before it may be taken as the last value, nor a counter continue across it."""
+        self._row[:] = [0.0] * SAMPLE_SIZE
+        for plan in self._plans.values():
+            h, checker = plan[1], plan[2]
+            h.stale = True  # stale again without a timeout transition: nothing has been received yet
+            h.last_valid_time = -math.inf
+            if checker is not None:
+                checker.reset()
+        self._stale_bits = sum(bit for _, _, bit in self._stale_plan)
+        self._fresh = 0
+        self._reasons = 0
+
     def decode_error(self, message: str) -> None:
         """Something of ``message`` arrived that could not be decoded (a serial line with a bad checksum)."""
         self.health[message].decode_errors += 1

@@ -286,7 +286,8 @@ class TimeRule(Iterator[LogFrame]):
     to) of each confirmed time-base change), ``malformed_lines`` and ``problems`` ((line_no, reason) pairs; the
     first ``MAX_RECORDED`` of each). A warning naming the file and line is logged for the first
     ``max_warnings`` bad records, then one summary warning at the end (``max_warnings=None``: none, the caller
-    summarises with ``examples``, the first three bad records escaped).
+    summarises with ``examples``, the first three bad records escaped); likewise for the discontinuities unless
+    ``warn_discontinuities`` is set to False (a consumer reporting them itself, as replay's segmentation does).
     """
 
     unit = "line"  # what a record is called in warnings: "candump line", "ASC line", "BLF object", ...
@@ -303,6 +304,8 @@ class TimeRule(Iterator[LogFrame]):
         self.name = name
         self._quiet = max_warnings is None  # None: no warning per bad record (the caller summarises: ``examples``)
         self.max_warnings = 0 if max_warnings is None else max_warnings
+        # False: a consumer that reports the discontinuities itself (replay: one line saying what it did)
+        self.warn_discontinuities = True
         self.max_jump = float(max_jump)
         self.reorder_tolerance = float(reorder_tolerance)
         self.confirm = max(1, int(confirm))
@@ -367,7 +370,7 @@ class TimeRule(Iterator[LogFrame]):
         hidden = self.malformed - self.max_warnings
         if hidden > 0 and not self._quiet:
             log.warning("%s: %d more bad %ss skipped (%d in total)", self.name, hidden, self.unit, self.malformed)
-        if self.discontinuities > self.max_warnings:
+        if self.discontinuities > self.max_warnings and self.warn_discontinuities:
             log.warning("%s: %d discontinuities of the time stamps in total", self.name, self.discontinuities)
 
     def _consistent(self, t: float, reference: float) -> bool:
@@ -406,7 +409,7 @@ class TimeRule(Iterator[LogFrame]):
             first = chain[0][0]
             if len(self.discontinuity_lines) < MAX_RECORDED:
                 self.discontinuity_lines.append((first.line_no, self._last, first.timestamp))
-            if self.discontinuities > self.max_warnings:
+            if self.discontinuities > self.max_warnings or not self.warn_discontinuities:
                 return self._take(chain)
             log.warning(
                 "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f); taken as a discontinuity of the log",

@@ -188,7 +188,9 @@ def _size(fh: IO[bytes]) -> int:
 class LogStats:
     """What reading a log found: the time rule's counts (``reader``: ``frames``, ``malformed``, ``rejected``,
     ``reordered``, ``discontinuities``, ``malformed_lines``, ``examples``), the frames skipped because they are
-    not classic data frames (``skipped``: kind -> count), the channel of the first frame and the progress."""
+    not classic data frames (``skipped``: kind -> count), the channel of the first frame, the line (record
+    number) of the last frame given (``line``) and the progress. The reader's ``warn_discontinuities`` is set
+    on ``reader`` (a consumer reporting the discontinuities itself)."""
 
     def __init__(self, path: Path, fmt: str, size: int, reader: TimeRule) -> None:
         self.path = path
@@ -197,6 +199,7 @@ class LogStats:
         self.reader = reader
         self.skipped: dict[str, int] = {}
         self.channel: str | None = None
+        self.line = 0
 
     def __getattr__(self, name: str) -> Any:  # frames, malformed, rejected, ... of the time rule
         if name.startswith("_") or name == "reader":
@@ -776,6 +779,7 @@ def _frames(reader: TimeRule, stats: LogStats) -> Iterator[tuple[float, int, byt
                 continue
             if stats.channel is None:
                 stats.channel = f.channel
+            stats.line = f.line_no
             yield f.timestamp, f.frame_id, f.data, f.is_extended
     finally:
         reader.close()

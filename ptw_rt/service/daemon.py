@@ -2,21 +2,37 @@
 
 One cycle (every ``sample_time`` of ``time.monotonic()``, deadlines on a fixed grid so nothing drifts):
 
-    frames received since the last cycle (+ the serial GNSS receiver's newest solution) -> CycleRunner.run -> bus.send
+    frames received since the last cycle (+ the serial GNSS receiver's newest solution) -> CycleRunner.run
+    -> the sender's queue
+
+Nothing that can block or take long runs in the loop's thread; the loop only hands work over and takes results:
 
 * A reader thread receives the input frames (the bus filters to the DBC's input ids; on the virtual bus python-can
   filters in software, which a ``recv(timeout=0)`` drain would mistake for an empty queue) and stamps them with
-  the monotonic clock, so the tracker's timeouts use the loop's clock.
+  the monotonic clock, so the tracker's timeouts use the loop's clock. A receive failure (the bus disappeared)
+  closes the bus; the loop reopens it every second while it keeps its period (``bus_reopens``).
+* Sending never holds the loop. On SocketCAN (``send(timeout=0)``: python-can polls the socket for room first, a
+  full queue or a bus-off controller is an error at once) and python-can's virtual bus the loop sends itself; any
+  other driver (which may block in ``send``) gets a sender thread: ``bus.send`` with a bounded timeout, a queue of
+  ``SEND_QUEUE_FRAMES`` frames that drops the oldest when the bus cannot keep up (``send_dropped``). Either way a
+  frame is tried ``1 + send_retries`` times; failures (any ``can.CanError``/``OSError``) are counted
+  (``send_failures``, ``send_errors`` for every failed attempt), logged at most once per
+  ``runtime.log_repeat_interval_s``, shown in the status and raise REASON_SEND_FAILURE for a second; never fatal.
+* SIGHUP: a reload thread (normal scheduling) re-reads and validates the config and builds the new cycle
+  (``RELOADING=1`` to systemd); the loop swaps it in between two cycles and sends ``READY=1``. An invalid config
+  is logged and the running one kept (``READY=1`` all the same).
 * Overrun: when the loop wakes more than one period late it does not burst through the missed cycles: it
-  resynchronises to the grid, counts the missed cycles (EST_Status.OverrunCount) and raises REASON_OVERRUN for
-  a status period (in EST_Status.ReasonBits, beside the estimator's own bits: the process's health is reported at
-  the edge and never goes through the estimator).
-* A failed send (``can.CanError``/``OSError``) is retried ``send_retries`` times, counted, raises
-  REASON_SEND_FAILURE for a second, and is never fatal. A bus that disappears (the reader fails) is closed and
-  reopened every second while the loop keeps its period.
+  resynchronises to the grid, counts the missed cycles (EST_Status.OverrunCount) and raises REASON_OVERRUN for a
+  status period (EST_Status.ReasonBits, beside the estimator's own bits). The rule for the mode: published
+  DEGRADED while more than ``OVERRUN_DEGRADED_LIMIT`` cycles were missed within the last ``OVERRUN_WINDOW_S``
+  (docs/daemon.md: each missed cycle loses one IMU and steering sample; an isolated overrun keeps VALID).
+* Watchdog: ``WATCHDOG=1`` means "the loop runs": pinged while cycles complete on time (a cycle that had to
+  resynchronise is not on time), whatever the bus does. A hung loop, or one that misses every deadline for
+  ``WatchdogSec/2``, stops the pings and systemd restarts it. ``READY=1`` after the first cycle on an open bus.
+* Start-up: a bus that cannot be opened is one line and exit code 69 (``BusUnavailableError``), restarted by
+  systemd; later losses of the bus are reopened in the loop.
 * SIGTERM/SIGINT stop the loop: a last EST_Status with EST_Status_Valid = 0, the learned stiffness saved.
-  SIGHUP reloads the config file (kept running with the old one if the new one is invalid).
-* sd_notify: READY after the first published cycle, STATUS every second, WATCHDOG only while cycles are healthy.
+* sd_notify: STATUS every second (mode, counters, bus, send failures).
 * ``runtime.gps.source: serial``: a reader thread (``ptw_rt.io.nmea.SerialGnssReader``, started before the loop
   takes its real-time priority) parses RMC/VTG from ``runtime.gps.serial_port``; each cycle takes its newest
   solution as a GPS_Velocity would be taken (same Sample slots, range checks, timeout). An unplugged receiver
@@ -24,13 +40,15 @@ One cycle (every ``sample_time`` of ``time.monotonic()``, deadlines on a fixed g
   every second; checksum errors and garbage lines count as decode errors of GPS_Velocity and are logged.
 
 ``Daemon`` is usable in a thread of another program (tests, demo): ``run(duration)`` / ``stop()``; only
-``run_daemon`` installs signal handlers.
+``run_daemon`` installs signal handlers and ``faulthandler`` (a SIGABRT from systemd's watchdog prints every
+thread's stack to the journal).
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
+import faulthandler
 import logging
 import math
 import signal
@@ -54,25 +72,36 @@ from ptw_rt.core.layout import (
     reason_names,
 )
 from ptw_rt.edge.cycle import CycleRunner, build_runner
-from ptw_rt.errors import UserFacingError
+from ptw_rt.errors import EXIT_UNAVAILABLE, UserFacingError
 from ptw_rt.io.dbc import DbcError
 from ptw_rt.io.nmea import NmeaParser, SerialGnssReader
 from ptw_rt.io.state_file import restore_state, save_state, stiffness_bounds
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.service.logs import HealthSummary, RateLimitedLog, setup_logging
-from ptw_rt.service.realtime import apply_realtime, restore_scheduling, thread_scheduling
+from ptw_rt.service.realtime import apply_realtime, normal_scheduling, restore_scheduling, thread_scheduling
 from ptw_rt.service.sdnotify import SystemdNotifier, WatchdogGate
 from ptw_rt.settings import BusSettings, Settings, load_settings
 
-__all__ = ["Daemon", "load_daemon_settings", "run_daemon"]
+__all__ = ["BusUnavailableError", "Daemon", "OverrunRule", "load_daemon_settings", "run_daemon"]
 
 log = logging.getLogger("ptw_rt.daemon")
 
 REOPEN_INTERVAL_S = 1.0
 SEND_FAILURE_HOLD_S = 1.0
 STATUS_NOTIFY_INTERVAL_S = 1.0
+SEND_TIMEOUT_S = 0.005  # one bus.send may wait this long for room in the transmit queue (in the sender thread)
+SEND_QUEUE_FRAMES = 64  # ~13 cycles of output: beyond, the oldest frames are dropped (stale estimates are useless)
+OVERRUN_WINDOW_S = 1.0  # the overrun rule: DEGRADED while more than OVERRUN_DEGRADED_LIMIT cycles were missed
+OVERRUN_DEGRADED_LIMIT = 2  # within the last OVERRUN_WINDOW_S (docs/daemon.md, "Overruns")
 _BITRATE_INTERFACES = frozenset({"pcan", "kvaser", "ixxat", "vector", "slcan", "gs_usb", "nican", "canalystii"})
 _RX_QUEUE_MAX = 20000
+_SEND_ERRORS = (can.CanError, OSError, ValueError)  # ValueError: a bus closed under the sender
+
+
+class BusUnavailableError(UserFacingError):
+    """The CAN bus cannot be opened at start-up (exit code 69: systemd restarts the daemon, the link may come)."""
+
+    exit_code = EXIT_UNAVAILABLE
 
 
 def _open_bus(bus_cfg: BusSettings, filters: list[dict]) -> can.BusABC:
@@ -116,6 +145,133 @@ class _Reader(threading.Thread):
                 append((clock(), msg.arbitration_id, bytes(msg.data), msg.is_extended_id))
 
 
+class _Sender(threading.Thread):
+    """Sends the loop's frames on ``daemon.bus`` (whatever bus is open at the time) so the loop never waits for it.
+
+    ``put`` (the loop) appends to a queue of at most ``SEND_QUEUE_FRAMES`` frames, dropping the oldest when full
+    (``daemon.send_dropped``); the thread sends each with ``bus.send(msg, timeout=SEND_TIMEOUT_S)`` and
+    ``send_retries`` retries, counting into the daemon's ``frames_out``, ``send_errors`` (failed attempts) and
+    ``send_failures`` (frames given up), and logs failures rate-limited. Started by the loop's thread, it shares
+    the loop's real-time priority: frames go out as soon as the loop sleeps.
+    """
+
+    def __init__(self, daemon: Daemon) -> None:
+        super().__init__(name="ptw-rt-can-tx", daemon=True)
+        self.d = daemon
+        self.queue: collections.deque = collections.deque()
+        self.cond = threading.Condition(threading.Lock())
+        self.running = True
+        self.rate_log = RateLimitedLog(log, daemon.settings.runtime.log_repeat_interval_s)
+
+    def put(self, frames: list[tuple[int, bytes]]) -> None:
+        with self.cond:
+            queue = self.queue
+            for frame in frames:
+                if len(queue) >= SEND_QUEUE_FRAMES:
+                    queue.popleft()
+                    self.d.send_dropped += 1
+                queue.append(frame)
+            self.cond.notify()
+
+    def stop(self, timeout: float) -> None:
+        """Send what is queued (for at most ``timeout`` s), then end the thread."""
+        with self.cond:
+            self.running = False
+            self.cond.notify()
+        self.join(timeout)
+
+    def run(self) -> None:
+        cond = self.cond
+        queue = self.queue
+        while True:
+            with cond:
+                while not queue and self.running:
+                    cond.wait()
+                if not queue:
+                    return
+                fid, data = queue.popleft()
+            self._send(fid, data)
+
+    def _send(self, fid: int, data: bytes) -> None:
+        bus = self.d.bus
+        if bus is not None:  # lost meanwhile: the loop reopens it; frames of a lost bus are not failures
+            _send_frame(self.d, bus, fid, data, SEND_TIMEOUT_S, self.rate_log)
+
+
+def _send_frame(d: Daemon, bus: can.BusABC, fid: int, data: bytes, timeout: float, rate_log: RateLimitedLog) -> None:
+    """One frame with ``send_retries`` retries; the outcome counted into the daemon's counters. Never raises."""
+    msg = can.Message(arbitration_id=fid, data=data, is_extended_id=False)
+    retries = d.settings.runtime.bus.send_retries
+    for attempt in range(retries + 1):
+        try:
+            bus.send(msg, timeout=timeout)
+        except _SEND_ERRORS as exc:
+            d.send_errors += 1
+            if attempt == retries:
+                d.send_failures += 1
+                d.last_send_error = f"{type(exc).__name__}: {exc}"
+                rate_log.warn(
+                    "send",
+                    f"cannot send frame 0x{fid:03X}: {d.last_send_error} ({d.send_failures} frames failed, "
+                    f"{d.send_dropped} dropped so far; the loop keeps its period)",
+                    time.monotonic(),
+                )
+            continue
+        d.frames_out += 1
+        return
+
+
+def _never_blocks(bus: can.BusABC) -> bool:
+    """True for the buses the loop may send on itself with ``timeout=0``: SocketCAN (python-can polls the socket
+    for room with a zero timeout before it sends, so the send cannot wait; a full queue or a bus-off controller is
+    an immediate error) and python-can's in-process virtual bus. Every other driver (USB adapters, serial slcan,
+    anything unknown) may block in ``send``: the sender thread's job."""
+    try:
+        from can.interfaces.virtual import VirtualBus
+
+        if type(bus) is VirtualBus:
+            return True
+        from can.interfaces.socketcan import SocketcanBus
+
+        if type(bus) is SocketcanBus:
+            return True
+    except ImportError:
+        pass
+    return False
+
+
+class OverrunRule:
+    """When missed cycles make the published mode DEGRADED: while more than ``limit`` cycles were missed within
+    the last ``window_s`` seconds (docs/daemon.md, "Overruns"). An isolated overrun of up to ``limit`` cycles is
+    counted (OverrunCount, REASON_OVERRUN) and keeps the mode."""
+
+    def __init__(self, limit: int = OVERRUN_DEGRADED_LIMIT, window_s: float = OVERRUN_WINDOW_S) -> None:
+        self.limit = int(limit)
+        self.window_s = float(window_s)
+        self.missed = 0  # cycles missed within the window
+        self._events: collections.deque = collections.deque()  # (time, missed cycles)
+
+    def add(self, now: float, missed: int) -> None:
+        self._events.append((now, missed))
+        self.missed += missed
+
+    def degraded(self, now: float) -> bool:
+        events = self._events
+        while events and events[0][0] <= now - self.window_s:
+            self.missed -= events.popleft()[1]
+        return self.missed > self.limit
+
+
+@dataclasses.dataclass
+class _Reload:
+    """What the reload thread prepared for the loop to swap in (``error`` set: keep the running config)."""
+
+    settings: Settings | None = None
+    runner: CycleRunner | None = None  # None: same model, the running cycle goes on
+    error: str | None = None
+    seconds: float = 0.0
+
+
 class Daemon:
     """The fixed-step loop. ``settings.runtime`` gives the bus, timeouts, state file and log intervals."""
 
@@ -143,20 +299,32 @@ class Daemon:
         self.watchdog = WatchdogGate(self.notifier)
         self.rate_log = RateLimitedLog(log, settings.runtime.log_repeat_interval_s)
         self.bus: can.BusABC | None = None
+        self._inline = False  # the loop sends itself (a bus that never blocks), else through the sender thread
         self._reader: _Reader | None = None
+        self._sender: _Sender | None = None
         self._rx: collections.deque = collections.deque(maxlen=_RX_QUEUE_MAX)
         self._stop = threading.Event()
         self._reload = threading.Event()
+        self._reloader: threading.Thread | None = None
+        self._prepared: _Reload | None = None  # set by the reload thread, taken by the loop
+        self._next_reopen = -math.inf
         # counters (read by tests, the health log and the status)
         self.cycles = 0
-        self.overruns = 0
+        self.overruns = 0  # missed cycles since start
         self.frames_in = 0
-        self.frames_out = 0
-        self.send_failures = 0
+        self.frames_out = 0  # sent (by the sender thread)
+        self.send_failures = 0  # frames given up after the retries
         self.send_errors = 0  # failed attempts, retries included
+        self.send_dropped = 0  # frames dropped from a full send queue (the bus could not keep up)
+        self.last_send_error: str | None = None
+        self.last_open_error: str | None = None
         self.bus_reopens = 0
+        self.reloads = 0  # configurations swapped in
+        self.reload_failures = 0
         self.state_saves = 0
         self.worst_cycle_us = 0.0  # since start
+        self.overrun_degraded_cycles = 0  # cycles published DEGRADED by the overrun rule
+        self.overrun_rule = OverrunRule()
         self.estimates = self.runner.estimates
         self.ready = threading.Event()
         # optional hook called in the loop thread after every cycle with (monotonic time, Estimates); for tests
@@ -182,6 +350,7 @@ class Daemon:
         self._stop.set()
 
     def request_reload(self) -> None:
+        """Re-read the configuration (SIGHUP): prepared in another thread, swapped in between two cycles."""
         self._reload.set()
 
     @property
@@ -190,54 +359,48 @@ class Daemon:
 
     # ------------------------------------------------------------------ bus
 
-    def _try_open(self) -> bool:
+    def _try_open(self, now: float | None = None) -> bool:
+        """Open the configured bus and start its reader; False (logged, rate-limited) when it cannot be opened."""
         cfg = self.settings.runtime.bus
         try:
             bus = _open_bus(cfg, self.filters)
         except (can.CanError, OSError, ValueError) as exc:
-            self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", 0.0)
+            self.last_open_error = f"{type(exc).__name__}: {exc}"
+            if now is not None:
+                self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", now)
             return False
         self.bus = bus
+        self._inline = _never_blocks(bus)
         self._reader = _Reader(bus, self._rx)
         self._reader.start()
         log.info("CAN bus %s:%s open", cfg.interface, cfg.channel)
         return True
 
-    def _close_bus(self) -> None:
-        if self._reader is not None:
-            self._reader.running = False
+    def open_bus(self) -> None:
+        """Open the bus before the loop starts; ``BusUnavailableError`` (one line, exit code 69) if impossible."""
+        if self.bus is not None:
+            return
+        if not self._try_open():
+            cfg = self.settings.runtime.bus
+            raise BusUnavailableError(
+                f"cannot open CAN bus {cfg.interface}:{cfg.channel} ({self.last_open_error}); "
+                "is the interface up? (systemd restarts the daemon)"
+            )
+
+    def _close_bus(self, wait: bool = False) -> None:
+        """Close the bus. The reader notices within its receive timeout; ``wait`` joins it (not from the loop)."""
+        reader = self._reader
+        if reader is not None:
+            reader.running = False
         if self.bus is not None:
             try:
                 self.bus.shutdown()
             except Exception as exc:  # a dying driver may raise anything; closing must not
                 log.debug("bus shutdown: %s", exc)
-        if self._reader is not None and self._reader is not threading.current_thread():
-            self._reader.join(timeout=0.5)
+        if wait and reader is not None and reader is not threading.current_thread():
+            reader.join(timeout=0.5)
         self.bus = None
         self._reader = None
-
-    def _send(self, frames: list[tuple[int, bytes]], now: float) -> bool:
-        """Send the cycle's frames; False if any could not be sent after the retries."""
-        bus = self.bus
-        if bus is None:
-            return False
-        retries = self.settings.runtime.bus.send_retries
-        ok = True
-        for fid, data in frames:
-            msg = can.Message(arbitration_id=fid, data=data, is_extended_id=False)
-            for attempt in range(retries + 1):
-                try:
-                    bus.send(msg, timeout=0.001)
-                except (can.CanError, OSError) as exc:
-                    self.send_errors += 1
-                    if attempt == retries:
-                        ok = False
-                        self.send_failures += 1
-                        self.rate_log.warn("send", f"cannot send frame 0x{fid:03X}: {exc}", now)
-                    continue
-                self.frames_out += 1
-                break
-        return ok
 
     def _poll_gnss(self, runner: CycleRunner, gnss: SerialGnssReader, now: float) -> None:
         """The serial receiver's newest solution into this cycle, its unplug and its bad lines (cheap: no lock)."""
@@ -270,10 +433,11 @@ class Daemon:
             signals["CourseOverGround"] = course
         runner.on_values("GPS_Velocity", t, signals)
 
-    def _warm_up(self) -> None:
+    def _warm_up(self, runner: CycleRunner | None = None) -> None:
         """Run the jitted step once before the loop (loading/compiling it takes far longer than a cycle)."""
-        est = self.runner.estimator
-        est.step(self.runner.sample.copy(), self.runner.estimates.copy())
+        runner = runner or self.runner
+        est = runner.estimator
+        est.step(runner.sample.copy(), runner.estimates.copy())
         est.reset()
 
     # ------------------------------------------------------------------ state
@@ -328,34 +492,85 @@ class Daemon:
 
     # ------------------------------------------------------------------ reload
 
-    def _do_reload(self) -> None:
+    def _start_reload(self) -> None:
+        """SIGHUP seen by the loop: tell systemd, prepare the new configuration in a thread of its own."""
+        self._reload.clear()
+        self.notifier.reloading(f"reloading {self.config_path}")
+        self._reloader = threading.Thread(target=self._prepare_reload, name="ptw-rt-reload", daemon=True)
+        self._reloader.start()
+
+    def _prepare_reload(self) -> None:
+        """The reload thread: parse, validate and build everything the loop will swap in; never raises."""
+        normal_scheduling()  # created by the real-time loop: do the slow work at normal priority
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(switch, 0.0005))  # hand the GIL back to the loop within 0.5 ms, not 5 ms
+        t0 = time.perf_counter()
         try:
             settings = load_daemon_settings(self.config_path, self._overrides)
             same_model = settings.config_hash == self.settings.config_hash and settings.sensors == self.settings.sensors
-            runner = None if same_model else _build(self.config_path, self.design_file, self.dbc, settings)
+            runner = None
+            if not same_model:
+                runner = _build(self.config_path, self.design_file, self.dbc, settings)
+                self._warm_up(runner)
+            prepared = _Reload(settings, runner)
         except UserFacingError as exc:
-            log.error("SIGHUP: config not reloaded, keeping the running one: %s", exc)
-            return
+            prepared = _Reload(error=str(exc))
+        except Exception as exc:  # noqa: BLE001 - a reload must never take the daemon down
+            log.exception("SIGHUP: unexpected error while preparing the reload")
+            prepared = _Reload(error=f"internal error: {type(exc).__name__}: {exc}")
+        finally:
+            sys.setswitchinterval(switch)
+        prepared.seconds = time.perf_counter() - t0
+        self._prepared = prepared
+
+    def _apply_reload(self, prepared: _Reload, now: float) -> CycleRunner:
+        """Between two cycles (the loop's thread): swap in what the reload thread prepared. Returns the runner."""
+        self._prepared = None
+        if prepared.error is not None:
+            self.reload_failures += 1
+            log.error("SIGHUP: config not reloaded, keeping the running one: %s", prepared.error)
+            self.notifier.ready(f"reload failed, running the previous config; {self._status_text()}")
+            return self.runner
+        settings, runner = prepared.settings, prepared.runner
+        assert settings is not None
         if settings.runtime.bus != self.settings.runtime.bus:
             log.warning("SIGHUP: runtime.bus changed; the bus is reopened with the new settings")
-            self.settings = settings
             self._close_bus()
+            self._next_reopen = now  # at the next cycle
+        old = self.runner
         if runner is not None:
             if settings.config_hash == self.settings.config_hash:
-                runner.estimator.restore_stiffness(self.runner.estimator.learned_stiffness())
-            # the wire goes on: output counters and the 10 Hz phase continue
-            runner.encoder, runner.cycles = self.runner.encoder, self.runner.cycles
+                runner.estimator.restore_stiffness(old.estimator.learned_stiffness())
+            # the wire goes on: output counters and the 10 Hz phase continue; so do the inputs when they can
+            runner.encoder, runner.cycles = old.encoder, old.cycles
+            if settings.runtime.stale_after_periods == self.settings.runtime.stale_after_periods:
+                runner.tracker = old.tracker
+            runner.process_degraded = old.process_degraded
             self.runner = runner
             self.estimates = runner.estimates
         self.settings = settings
         self.rate_log.repeat_interval_s = float(settings.runtime.log_repeat_interval_s)
+        if self._sender is not None:
+            self._sender.rate_log.repeat_interval_s = self.rate_log.repeat_interval_s
         logging.getLogger().setLevel(settings.runtime.log_level)
-        log.info("SIGHUP: config %s reloaded%s", self.config_path, "" if same_model else " (estimator restarted)")
+        self.reloads += 1
+        log.info(
+            "SIGHUP: config %s reloaded%s (prepared in %.0f ms off the loop)",
+            self.config_path,
+            "" if runner is None else " (estimator restarted)",
+            prepared.seconds * 1e3,
+        )
+        self.notifier.ready(self._status_text())
+        return self.runner
 
     # ------------------------------------------------------------------ loop
 
     def run(self, duration: float | None = None) -> int:
-        """Run until ``stop()`` (or ``duration`` seconds). Returns 0."""
+        """Run until ``stop()`` (or ``duration`` seconds). Returns 0.
+
+        Raises ``BusUnavailableError`` (before anything else happens) if the bus cannot be opened.
+        """
+        self.open_bus()
         if self.gnss is not None:
             self.gnss.start()  # before the real-time priority: the reader thread must not inherit it
         rt = self.settings.runtime.realtime
@@ -363,8 +578,8 @@ class Daemon:
         self.realtime_warnings = apply_realtime(rt.priority, list(rt.cpus) if rt.cpus else None, rt.lock_memory)
         for w in self.realtime_warnings:
             log.warning("real-time setting not applied: %s", w)
-        if self.bus is None:
-            self._try_open()
+        self._sender = sender = _Sender(self)
+        sender.start()  # after the real-time priority: it inherits it
         runner = self.runner
         gnss = self.gnss
         rx = self._rx
@@ -374,12 +589,14 @@ class Daemon:
         t_start = clock()
         t_end = math.inf if duration is None else t_start + duration
         k = 1  # index of the next deadline on the grid t_start + k * dt
-        next_reopen = t_start + REOPEN_INTERVAL_S
+        self._next_reopen = t_start + REOPEN_INTERVAL_S
         next_status = t_start
         next_health = t_start + self.settings.runtime.health_log_interval_s
         next_save = t_start + self.settings.runtime.state_save_interval_s
         overrun_until = -math.inf
         send_fail_until = -math.inf
+        send_problems = 0  # send_failures + send_dropped seen so far
+        overrun_rule = self.overrun_rule = OverrunRule()
         period_worst_us = 0.0
         try:
             while not self._stop.is_set():
@@ -390,21 +607,22 @@ class Daemon:
                     now = clock()
                 if now >= t_end:
                     break
-                if now > deadline + dt:  # woke up more than a period late: resynchronise, no burst
+                on_time = now <= deadline + dt
+                if not on_time:  # woke up more than a period late: resynchronise, no burst
                     k_now = int((now - t_start) / dt)
                     missed = k_now - k
                     self.overruns += missed
                     k = k_now
                     overrun_until = now + self.status_period * dt
+                    overrun_rule.add(now, missed)
                     self.rate_log.warn("overrun", f"cycle overrun: {missed} cycle(s) missed", now)
                 k += 1
                 t0 = perf()
 
                 # ---- the cycle's work
-                if self._reload.is_set():
-                    self._reload.clear()
-                    self._do_reload()
-                    runner = self.runner
+                prepared = self._prepared
+                if prepared is not None:
+                    runner = self._apply_reload(prepared, now)
                 n_rx = len(rx)
                 for _ in range(n_rx):
                     ts, fid, data, ext = rx.popleft()
@@ -412,9 +630,14 @@ class Daemon:
                 self.frames_in += n_rx
                 if gnss is not None:
                     self._poll_gnss(runner, gnss, now)
+                problems = self.send_failures + self.send_dropped
+                if problems != send_problems:
+                    send_problems = problems
+                    send_fail_until = now + SEND_FAILURE_HOLD_S
                 runner.process_reasons = (REASON_OVERRUN if now < overrun_until else 0) | (
                     REASON_SEND_FAILURE if now < send_fail_until else 0
                 )
+                runner.process_degraded = overrun_rule.degraded(now)
                 runner.status["overrun_count"] = self.overruns
                 runner.status["cycle_time_us"] = period_worst_us
                 is_status = runner.cycles % self.status_period == 0
@@ -422,10 +645,16 @@ class Daemon:
                 estimates = self.estimates = runner.estimates
                 if is_status:
                     period_worst_us = 0.0
-                sent = self._send(frames, now)
-                if not sent and self.bus is not None:
-                    send_fail_until = now + SEND_FAILURE_HOLD_S
+                bus = self.bus
+                if bus is not None:
+                    if self._inline:
+                        for fid, data in frames:
+                            _send_frame(self, bus, fid, data, 0.0, self.rate_log)
+                    else:
+                        sender.put(frames)
                 self.cycles += 1
+                if runner.process_degraded:
+                    self.overrun_degraded_cycles += 1
                 us = (perf() - t0) * 1e6
                 if us > period_worst_us:
                     period_worst_us = us
@@ -435,18 +664,19 @@ class Daemon:
                     self.on_cycle(now, estimates)
 
                 # ---- housekeeping (cheap unless due)
-                healthy = sent and self.bus is not None
-                if healthy and not self.ready.is_set():
+                if not self.ready.is_set():
                     self.ready.set()
                     self.notifier.ready(self._status_text())
                     log.info("publishing on %s; %s", self._bus_name(), self.state_note)
-                self.watchdog.cycle_done(healthy, now)
+                self.watchdog.cycle_done(on_time, now)
+                if self._reload.is_set() and (self._reloader is None or not self._reloader.is_alive()):
+                    self._start_reload()
                 if self._reader is not None and self._reader.failed:
                     self.rate_log.error("bus_lost", f"CAN bus lost ({self._reader.failed}); reopening", now)
                     self._close_bus()
-                if self.bus is None and now >= next_reopen:
-                    next_reopen = now + REOPEN_INTERVAL_S
-                    if self._try_open():
+                if self.bus is None and now >= self._next_reopen:
+                    self._next_reopen = now + REOPEN_INTERVAL_S
+                    if self._try_open(now):
                         self.bus_reopens += 1
                 if now >= next_status:
                     next_status = now + STATUS_NOTIFY_INTERVAL_S
@@ -466,13 +696,21 @@ class Daemon:
         self.notifier.stopping("stopping")
         if self.gnss is not None:
             self.gnss.stop()
+        sender = self._sender
+        last = None
         if self.bus is not None:
             self.runner.status.update(overrun_count=self.overruns, cycle_time_us=0)
-            self._send([self.runner.final_status()], time.monotonic())
+            last = self.runner.final_status()
+        if sender is not None:
+            if last is not None and not self._inline:
+                sender.put([last])
+            sender.stop(timeout=0.5)  # what is queued goes out first, the last EST_Status last
+        if last is not None and self._inline and self.bus is not None:
+            _send_frame(self, self.bus, *last, SEND_TIMEOUT_S, self.rate_log)
         if self._saver is not None:
             self._saver.join(timeout=5.0)
         self._save_state(self._stiffness_to_save(), time.monotonic())
-        self._close_bus()
+        self._close_bus(wait=True)
         self._health_log(time.monotonic())
         log.info("stopped after %d cycles", self.cycles)
 
@@ -484,12 +722,12 @@ class Daemon:
 
     def _status_text(self) -> str:
         e = self.estimates
-        reasons = ",".join(reason_names(int(e[E_REASONS]))) or "-"
+        reasons = ",".join(reason_names(int(e[E_REASONS]) | self.runner.process_reasons)) or "-"
         bus = "open" if self.bus is not None else "LOST"
         gnss = "" if self.gnss is None else f" gnss={'open' if self.gnss.connected else 'LOST'}"
         return (
             f"mode={MODE_NAMES[int(e[E_MODE])]} reasons={reasons} cycles={self.cycles} overruns={self.overruns} "
-            f"send_failures={self.send_failures} bus={bus}{gnss}"
+            f"send_failures={self.send_failures} send_dropped={self.send_dropped} bus={bus}{gnss}"
         )
 
     def health(self) -> dict[str, Any]:
@@ -497,10 +735,17 @@ class Daemon:
             "mode": MODE_NAMES[int(self.estimates[E_MODE])],
             "cycles": self.cycles,
             "overruns": self.overruns,
+            "overrun_degraded_cycles": self.overrun_degraded_cycles,
             "frames_in": self.frames_in,
             "frames_out": self.frames_out,
             "send_failures": self.send_failures,
+            "send_errors": self.send_errors,
+            "send_dropped": self.send_dropped,
+            "last_send_error": self.last_send_error,
             "bus_reopens": self.bus_reopens,
+            "reloads": self.reloads,
+            "reload_failures": self.reload_failures,
+            "watchdog_pings": self.watchdog.pings,
             "worst_cycle_us": round(self.worst_cycle_us, 1),
             "inputs": self.runner.tracker.summary(),
             "gnss": None if self.gnss is None else self.gnss.stats(),
@@ -508,6 +753,8 @@ class Daemon:
 
     def _health_log(self, now: float) -> None:
         self.rate_log.flush(now)
+        if self._sender is not None:
+            self._sender.rate_log.flush(now)
         inputs = {}
         for name, h in self.runner.tracker.summary().items():
             if isinstance(h, dict):
@@ -522,6 +769,12 @@ class Daemon:
             g = self.gnss.stats()
             keys = ("connected", "opens", "disconnects", "used", "checksum_errors", "garbage")
             inputs["gnss_serial"] = {k: g[k] for k in keys}
+        inputs["send"] = {
+            "out": self.frames_out,
+            "failed": self.send_failures,
+            "dropped": self.send_dropped,
+            "bus_reopens": self.bus_reopens,
+        }
         summary = HealthSummary(
             mode=int(self.estimates[E_MODE]),
             reasons=int(self.estimates[E_REASONS]),
@@ -571,7 +824,10 @@ def _overrides_from(args) -> dict[str, Any]:
 
 
 def run_daemon(args) -> int:
-    """``ptw-rt run``: check the config (``--check-config``) or run the loop until SIGTERM/SIGINT/--duration."""
+    """``ptw-rt run``: check the config (``--check-config``) or run the loop until SIGTERM/SIGINT/--duration.
+
+    Exit codes: 0 stopped; 2 configuration error; 69 the bus cannot be opened at start-up (``ptw_rt.errors``).
+    """
     overrides = _overrides_from(args)
     settings = load_daemon_settings(args.config, overrides)
     design = args.design_file or DEFAULT_DESIGN
@@ -589,6 +845,11 @@ def run_daemon(args) -> int:
         return 0
     if args.duration is not None and not args.duration > 0:
         raise UserFacingError(f"--duration must be positive, got {args.duration}")
+    # systemd's watchdog kills a hung loop with SIGABRT: print every thread's stack first (to the journal)
+    try:
+        faulthandler.enable(file=sys.stderr, all_threads=True)
+    except (AttributeError, ValueError, OSError) as exc:  # a stderr without a file descriptor (embedded use)
+        log.debug("faulthandler not enabled: %s", exc)
     setup_logging(settings.runtime.log_level)
     daemon = Daemon(settings, args.config, design, overrides=overrides)
     previous: dict[int, Any] = {}

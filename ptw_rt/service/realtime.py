@@ -25,7 +25,7 @@ import platform
 import resource
 from typing import Any
 
-__all__ = ["apply_realtime", "realtime_state", "restore_scheduling", "thread_scheduling"]
+__all__ = ["apply_realtime", "normal_scheduling", "realtime_state", "restore_scheduling", "thread_scheduling"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,20 @@ def restore_scheduling(saved: tuple[int, int] | None) -> None:
         os.sched_setscheduler(0, saved[0], os.sched_param(saved[1]))
     except (AttributeError, OSError) as exc:
         log.warning("could not restore the thread's scheduling policy: %s", exc)
+
+
+def normal_scheduling() -> None:
+    """Put the calling thread at normal scheduling (SCHED_OTHER). Never raises.
+
+    For a helper thread created by the real-time loop (it inherits SCHED_FIFO) that does long, unhurried work,
+    such as preparing a configuration reload: at the loop's priority it would compete with the loop and starve
+    every normal thread of its CPU. Lowering one's own priority needs no privilege.
+    """
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (AttributeError, OSError) as exc:
+        log.debug("could not set normal scheduling: %s", exc)
 
 
 def realtime_state() -> dict:

@@ -181,8 +181,9 @@ class WatchdogGate:
     within about 1.5 watchdog intervals of the last healthy cycle). ``stall_after_s``: a gap between two
     ``cycle_done`` calls longer than this is counted in ``stalls`` (diagnostics; default ``interval_s / 4``).
 
-    "Healthy" is for the daemon to define: the cycle ran its step and published. A missing sensor is a
-    DEGRADED mode on the bus, not a reason to restart; a loop that can no longer do its job is.
+    "Healthy" is for the daemon to define; ``ptw-rt run``'s: the cycle completed on time (docs/daemon.md), whatever
+    the bus does. A missing sensor is a DEGRADED mode on the bus and a failing send a counted fault, not reasons to
+    restart; a loop that can no longer keep its period is.
     """
 
     def __init__(

@@ -214,6 +214,23 @@ def clean_log_lines(seconds: float = 2.0) -> list[str]:
     return lines
 
 
+def shifted(lines: list[str], dt: float) -> list[str]:
+    """Log lines with their time stamps moved by ``dt`` seconds."""
+    out = []
+    for line in lines:
+        stamp, rest = line[1:].split(")", 1)
+        out.append(f"({float(stamp) + dt:017.6f}){rest}")
+    return out
+
+
+def swapped_pairs(lines: list[str]) -> list[str]:
+    """Lines swapped three apart, every sixth line: frames up to 10 ms out of order, as a log of several nodes has."""
+    out = list(lines)
+    for k in range(0, len(out) - 3, 6):
+        out[k], out[k + 3] = out[k + 3], out[k]
+    return out
+
+
 def build_logs(d: Path) -> dict[str, Path]:
     files = _common(d, "log")
     clean = clean_log_lines()
@@ -237,6 +254,11 @@ def build_logs(d: Path) -> dict[str, Path]:
                 "past", clean[:half] + [log_line(LOG_EPOCH - 5 + k * 0.01) for k in range(5)] + clean[half:]
             ),
             "long_line": log("longline", clean[:10] + ["(" + "1" * 3_000_000] + clean[10:]),
+            # time as hostile data beyond single lines: replay ends a segment at a long gap or a jump back
+            "gap_2h": log("gap2h", clean + shifted(clean, 7200.0 + 2.0)),
+            "gap_3s": log("gap3s", clean + shifted(clean, 3.0 + 2.0)),  # bridged: within the default --max-gap
+            "backwards_30s": log("back30", clean + shifted(clean, -30.0)),
+            "swapped_pairs": log("swapped", swapped_pairs(clean)),
             "no_newline_at_all": _write(d / "onelong.log", b"x" * 3_000_000),
         }
     )

@@ -1,0 +1,228 @@
+"""Replay treats a log's time as untrusted data: segments at long gaps and jumps back, out-of-order frames by
+rule and counted, output bounded by the log's content; output errors and bad logs of a directory run in one line.
+
+In-process (one runner for the module): ``test_hostile_cli.py`` runs the same cases as subprocesses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from ptw_rt.apps import replay as replay_app
+from ptw_rt.apps.replay import ReplayOutputError, replay_log, run_replay
+from ptw_rt.edge.cycle import DriveStats, build_runner, drive_log
+from ptw_rt.errors import EXIT_OUTPUT, EXIT_PARTIAL, UserFacingError
+from ptw_rt.io.candump import read_log
+from ptw_rt.paths import DEFAULT_CONFIG
+
+from .conftest import LOG_EPOCH, clean_log_lines
+
+CLEAN_S = 2.0  # seconds of content of every clean block in the fixtures
+CLEAN_CYCLES = int(CLEAN_S * 100)
+
+
+@pytest.fixture(scope="module")
+def runner():
+    r = build_runner(DEFAULT_CONFIG)
+    r.cycle(0.0)  # compile / load the jitted step once
+    return r
+
+
+def _replay(path, tmp_path, runner, caplog=None, **kw):
+    runner.estimator.reset()
+    out = tmp_path / f"{path.stem}.out.log"
+    return replay_log(path, out, None, DEFAULT_CONFIG, runner=runner, **kw), out
+
+
+def _args(logs, out, **kw):
+    base = dict(logs=list(logs), out=out, csv=None, config=DEFAULT_CONFIG, design_file=None, jobs=2, no_progress=True)
+    base.update(kw)
+    return argparse.Namespace(**base)
+
+
+def _lines(caplog, text):
+    return [r.getMessage() for r in caplog.records if text in r.getMessage()]
+
+
+# ---------------------------------------------------------------------- segments
+
+
+def test_two_hour_gap_is_two_segments_not_720k_cycles(hostile_logs, tmp_path, runner, caplog):
+    with caplog.at_level(logging.WARNING):
+        s, out = _replay(hostile_logs["gap_2h"], tmp_path, runner)
+    assert s["segments"] == 2 and s["discontinuities"] == 1
+    assert abs(s["cycles"] - 2 * CLEAN_CYCLES) <= 2  # the log's content, not its 2 h span
+    assert out.stat().st_size < 200_000
+    assert s["log_duration_s"] == pytest.approx(2 * CLEAN_S, abs=0.05)
+    lines = _lines(caplog, "segment 2 starts")
+    assert len(lines) == 1 and "+7200.0" in lines[0] and "gap2h.log:601:" in lines[0], lines
+    assert not _lines(caplog, "discontinuity of the log")  # the reader's own line is not printed as well
+    stamps = [f.timestamp for f in read_log(out)]
+    assert stamps == sorted(stamps) and stamps[-1] - stamps[0] > 7200
+
+
+def test_jump_back_is_a_new_segment(hostile_logs, tmp_path, runner, caplog):
+    with caplog.at_level(logging.WARNING):
+        s, _ = _replay(hostile_logs["backwards_30s"], tmp_path, runner)
+    assert s["segments"] == 2 and abs(s["cycles"] - 2 * CLEAN_CYCLES) <= 2
+    (line,) = _lines(caplog, "segment 2 starts")
+    assert "clock going back" in line and "-3" in line
+
+
+def test_gap_within_max_gap_is_bridged_in_one_line(hostile_logs, tmp_path, runner, caplog):
+    with caplog.at_level(logging.WARNING):
+        s, _ = _replay(hostile_logs["gap_3s"], tmp_path, runner)
+    assert s["segments"] == 1 and s["discontinuities"] == 1
+    assert abs(s["cycles"] - (2 * CLEAN_CYCLES + 300)) <= 3  # 3 s driven through, cycle by cycle
+    (line,) = _lines(caplog, "bridged")
+    assert "+3.0" in line and "gap3s.log:601:" in line
+    # the same log with a shorter --max-gap: two segments
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        s, _ = _replay(hostile_logs["gap_3s"], tmp_path, runner, max_gap=1.0)
+    assert s["segments"] == 2 and abs(s["cycles"] - 2 * CLEAN_CYCLES) <= 2
+    assert len(_lines(caplog, "segment 2 starts")) == 1 and not _lines(caplog, "bridged")
+
+
+def test_out_of_order_frames_by_rule_and_counted(hostile_logs, tmp_path, runner):
+    s, _ = _replay(hostile_logs["swapped_pairs"], tmp_path, runner)
+    n = len(clean_log_lines())
+    assert s["frames_in"] == n and s["malformed_lines"] == 0  # within 20 ms: taken, not rejected
+    assert s["reordered"] >= n // 6 - 1
+    assert s["segments"] == 1 and abs(s["cycles"] - CLEAN_CYCLES) <= 2
+    # a block stamped 5 s in the past: rejected as out of order, counted by reason
+    s, _ = _replay(hostile_logs["block_5s_in_past"], tmp_path, runner)
+    assert s["rejected"] == {"out_of_order": 5} and s["segments"] == 1
+
+
+def test_summary_reports_the_clock(hostile_logs, tmp_path, runner):
+    s, _ = _replay(hostile_logs["stray_zero_first"], tmp_path, runner)
+    for key in ("rejected", "reordered", "discontinuities", "segments", "late_frames", "segment_breaks"):
+        assert key in s
+    assert s["rejected"] == {"time_jump": 1} and s["segments"] == 1
+
+
+# ---------------------------------------------------------------------- drive_log itself
+
+
+def _frames(t0: float, seconds: float, ids=(0x100, 0x101, 0x102)):
+    data = {0x100: bytes(7), 0x101: bytes(7), 0x102: bytes(2)}
+    return [(t0 + k * 0.01 + j * 1e-4, fid, data[fid]) for k in range(int(seconds * 100)) for j, fid in enumerate(ids)]
+
+
+def test_drive_log_segments_keep_learned_stiffness(runner):
+    est = runner.estimator
+    est.reset()
+    learned = est.design.ad_theta_nominal * 1.1
+    est.restore_stiffness(learned)
+    resets = []
+    real_restart = runner.restart_segment
+
+    def restart():
+        resets.append(runner.cycles)
+        real_restart()
+
+    runner.restart_segment = restart
+    try:
+        stats = DriveStats()
+        frames = _frames(LOG_EPOCH, 1.0) + _frames(LOG_EPOCH + 3600, 1.0) + _frames(LOG_EPOCH + 10, 1.0)
+        breaks = []
+        n = drive_log(frames, runner, on_segment=breaks.append, stats=stats)
+    finally:
+        del runner.restart_segment
+    assert n == pytest.approx(300, abs=3)
+    assert stats.segments == 3 and [b.kind for b in breaks] == ["gap", "backwards"] and len(resets) == 2
+    assert breaks[0].jump == pytest.approx(3599.0, abs=0.02)
+    np.testing.assert_allclose(est.learned_stiffness(), learned)  # reset() keeps what was learned
+
+
+def test_drive_log_bounded_and_late_frames(runner):
+    runner.estimator.reset()
+    stats = DriveStats()
+    frames = _frames(LOG_EPOCH, 0.5)
+    # one frame 15 ms late: after the cycle its stamp belongs to has closed
+    late = (LOG_EPOCH + 0.2 - 0.015, 0x100, bytes(7))
+    frames.insert(3 * 20 + 1, late)
+    frames.insert(5, (math.nan, 0x100, bytes(7)))
+    frames.insert(7, (math.inf, 0x100, bytes(7)))
+    n = drive_log(frames, runner, stats=stats)
+    assert stats.segments == 1 and stats.bad_stamps == 2
+    assert stats.late_frames == 1
+    assert n == pytest.approx(50, abs=2)
+
+
+def test_drive_log_rejects_a_non_positive_max_gap(runner):
+    with pytest.raises(ValueError):
+        drive_log([], runner, max_gap=0.0)
+
+
+# ---------------------------------------------------------------------- output errors, directory runs
+
+
+@pytest.mark.parametrize(
+    "target, text",
+    [
+        ("/dev/full", "No space left on device"),
+        ("{tmp}", "is a directory"),
+        ("{log}/x.log", "not a directory"),
+        ("/sys/ptw-rt-replay.log", "cannot write /sys/ptw-rt-replay.log"),
+    ],
+)
+def test_output_errors_are_one_line(target, text, hostile_logs, tmp_path, runner):
+    log = hostile_logs["gap_3s"]
+    out = target.format(tmp=tmp_path, log=log)
+    with pytest.raises(ReplayOutputError, match=text) as info:
+        run_replay(_args([log], replay_app.Path(out)), out=io.StringIO(), err=io.StringIO())
+    assert info.value.exit_code == EXIT_OUTPUT == 74
+    assert "\n" not in str(info.value)
+
+
+def test_csv_output_error(hostile_logs, tmp_path, runner):
+    with pytest.raises(ReplayOutputError, match="/dev/full"):
+        replay_log(hostile_logs["gap_3s"], tmp_path / "o.log", "/dev/full", DEFAULT_CONFIG, runner=runner)
+
+
+def test_non_regular_input_named_as_such(hostile_logs, tmp_path):
+    for name, kind in (("dev_zero", "character device"), ("fifo", "FIFO")):
+        with pytest.raises(UserFacingError, match=f"is a {kind}.*not a regular file"):
+            run_replay(_args([hostile_logs[name]], tmp_path / "o.log"))
+
+
+def test_bad_log_in_a_directory_run_never_stops_the_others(hostile_logs, tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    for name in ("gap_2h", "gap_3s", "swapped_pairs"):
+        (src / f"{name}.log").write_bytes(hostile_logs[name].read_bytes())
+    out_dir = tmp_path / "out"
+    (out_dir / "gap_3s.log").mkdir(parents=True)  # its output cannot be written
+    out, err = io.StringIO(), io.StringIO()
+    assert run_replay(_args([src], out_dir), out=out, err=err) == EXIT_PARTIAL == 1
+    summaries = [json.loads(line) for line in out.getvalue().splitlines()]
+    by_name = {s["log"].rsplit("/", 1)[-1]: s for s in summaries}
+    assert set(by_name) == {"gap_2h.log", "gap_3s.log", "swapped_pairs.log"}
+    assert "is a directory" in by_name["gap_3s.log"]["error"]
+    assert by_name["gap_2h.log"]["segments"] == 2 and by_name["swapped_pairs.log"]["cycles"] > 0
+    assert "1 of 3 logs failed" in err.getvalue()
+
+
+def test_worker_exception_becomes_the_logs_error(monkeypatch, tmp_path):
+    def boom(*a, **kw):
+        raise RuntimeError("simulated bug\nsecond line")
+
+    monkeypatch.setattr(replay_app, "replay_log", boom)
+    result = replay_app._job(tmp_path / "a.log", tmp_path / "o.log", None, DEFAULT_CONFIG, None, 5.0)
+    expected = "internal error: RuntimeError: simulated bug second line"  # one line
+    assert result == {"log": str(tmp_path / "a.log"), "error": expected}
+
+
+def test_max_gap_option_checked(hostile_logs, tmp_path):
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(UserFacingError, match="--max-gap"):
+            run_replay(_args([hostile_logs["gap_3s"]], tmp_path / "o.log", max_gap=bad))
