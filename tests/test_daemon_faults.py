@@ -29,13 +29,13 @@ import numpy as np
 import pytest
 from test_daemon import Feeder, _channel, _settings
 
-from ptw_rt.core.layout import E_MODE, E_VALID, MODE_DEGRADED, MODE_VALID, V_CAMBER, V_CORNERING
+from ptw_rt.core.layout import E_MODE, E_VALID, MODE_DEGRADED, MODE_VALID, REASON_OVERRUN, V_CAMBER, V_CORNERING
 from ptw_rt.errors import EXIT_UNAVAILABLE
 from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.io.state_file import load_state, save_state
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.service import daemon as daemon_mod
-from ptw_rt.service.daemon import BusUnavailableError, Daemon, OverrunRule
+from ptw_rt.service.daemon import BusUnavailableError, Daemon, OverrunRule, load_daemon_settings
 from ptw_rt.service.sdnotify import SystemdNotifier
 
 DT = 0.01
@@ -358,11 +358,14 @@ def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frame
     # 65 ms (5 missed cycles)
     stalls = {2.5: 0.025, 4.0: 0.065}
     t0 = []
+    degraded_reasons: list[int] = []
 
     def on_cycle(now, e):
         if not t0:
             t0.append(now)
         trace.append((now - t0[0], int(e[E_MODE]), daemon.overruns))
+        if int(e[E_MODE]) == MODE_DEGRADED:
+            degraded_reasons.append(daemon.runner.process_reasons)
         for at in list(stalls):
             if now - t0[0] >= at:
                 time.sleep(stalls.pop(at))
@@ -379,6 +382,7 @@ def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frame
     assert before and all(m == MODE_VALID for m in before), before
     assert all(m == MODE_VALID for m in isolated), isolated  # counted, VALID kept
     assert MODE_DEGRADED in burst  # 5 missed cycles within a second: DEGRADED ...
+    assert degraded_reasons and all(r & REASON_OVERRUN for r in degraded_reasons)  # ... saying why in ReasonBits
     assert all(m == MODE_VALID for m in after)  # ... for the window (1 s), then VALID again
     assert daemon.overruns >= 6 and daemon.overrun_degraded_cycles <= 110
 
@@ -480,6 +484,36 @@ def test_invalid_reload_keeps_the_running_config(notify, tmp_path):
     assert any("config not reloaded" in line and "sample_time" in line for line in lines)
     assert len(notify.with_key("RELOADING=1")) == 1 and len(notify.with_key("READY=1")) == 2  # start + reload
     assert daemon.cycles >= 140
+
+
+def test_reload_moves_to_another_bus(notify, tmp_path):
+    """runtime.bus changed in the file: the bus is closed in the loop (no wait) and reopened on the new channel."""
+    first, second = _channel(), _channel()
+    config = tmp_path / "daemon.yaml"
+    text = DEFAULT_CONFIG.read_text().replace("interface: socketcan", "interface: virtual", 1)
+    config.write_text(text.replace("channel: can0", f"channel: {first}", 1))
+    settings = load_daemon_settings(config, {"state_file": tmp_path / "state.json"})
+    daemon = Daemon(settings, config, notifier=notify.notifier(), overrides={"state_file": tmp_path / "state.json"})
+    listener = can.Bus(interface="virtual", channel=second)
+    marks: dict[str, int] = {}
+
+    def on_cycle(now, e):
+        if daemon.cycles == 50:
+            config.write_text(text.replace("channel: can0", f"channel: {second}", 1))
+            marks["overruns"] = daemon.overruns
+            daemon.request_reload()
+
+    daemon.on_cycle = on_cycle
+    try:
+        _run(daemon, 2.0)
+        received = 0
+        while listener.recv(timeout=0) is not None:
+            received += 1
+    finally:
+        listener.shutdown()
+    assert daemon.reloads == 1 and daemon.settings.runtime.bus.channel == second
+    assert daemon.bus_reopens == 1 and received >= 100
+    assert daemon.overruns - marks["overruns"] <= OverrunRule().limit
 
 
 def test_sighup_to_the_process_as_systemd_sends_it(notify, tmp_path):

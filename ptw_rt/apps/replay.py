@@ -405,6 +405,7 @@ _SHORT_KEYS = (
     "malformed_lines",
     "rejected",
     "reordered",
+    "late_frames",
     "discontinuities",
     "x_real_time",
     "modes",

@@ -24,8 +24,9 @@ Nothing that can block or take long runs in the loop's thread; the loop only han
 * Overrun: when the loop wakes more than one period late it does not burst through the missed cycles: it
   resynchronises to the grid, counts the missed cycles (EST_Status.OverrunCount) and raises REASON_OVERRUN for a
   status period (EST_Status.ReasonBits, beside the estimator's own bits). The rule for the mode: published
-  DEGRADED while more than ``OVERRUN_DEGRADED_LIMIT`` cycles were missed within the last ``OVERRUN_WINDOW_S``
-  (docs/daemon.md: each missed cycle loses one IMU and steering sample; an isolated overrun keeps VALID).
+  DEGRADED, with REASON_OVERRUN, while more than ``OVERRUN_DEGRADED_LIMIT`` cycles were missed within the last
+  ``OVERRUN_WINDOW_S`` (docs/daemon.md: each missed cycle loses one sample of every input; an isolated overrun
+  keeps VALID).
 * Watchdog: ``WATCHDOG=1`` means "the loop runs": pinged while cycles complete on time (a cycle that had to
   resynchronise is not on time), whatever the bus does. A hung loop, or one that misses every deadline for
   ``WatchdogSec/2``, stops the pings and systemd restarts it. ``READY=1`` after the first cycle on an open bus.
@@ -634,10 +635,11 @@ class Daemon:
                 if problems != send_problems:
                     send_problems = problems
                     send_fail_until = now + SEND_FAILURE_HOLD_S
-                runner.process_reasons = (REASON_OVERRUN if now < overrun_until else 0) | (
+                degraded = runner.process_degraded = overrun_rule.degraded(now)
+                # the overrun bit for a status period after each overrun, and as long as it makes the mode DEGRADED
+                runner.process_reasons = (REASON_OVERRUN if now < overrun_until or degraded else 0) | (
                     REASON_SEND_FAILURE if now < send_fail_until else 0
                 )
-                runner.process_degraded = overrun_rule.degraded(now)
                 runner.status["overrun_count"] = self.overruns
                 runner.status["cycle_time_us"] = period_worst_us
                 is_status = runner.cycles % self.status_period == 0
