@@ -346,9 +346,9 @@ def run_demo(args) -> int:
         print(f"state file:   {state_file} (learned tyre stiffness)")
     else:
         print(
-            f"state file:   not written: the tyre stiffness was never published valid on this ride "
-            f"({ride.duration:g} s; it needs {daemon.settings.estimator.stiffness_valid_after:g} s of "
-            "excited adaptation and an adaptive observer that explains a_y)"
+            f"state file:   not written: the tyre stiffness was not published valid when the daemon stopped "
+            f"({ride.duration:g} s ride; valid needs the tyre bank to single out one tyre with a consistent model, "
+            'docs/estimator.md, "Tyres")'
         )
     if report_dir is not None:
         print(f"report:       {report_dir}/ (summary.md, *.png)")
