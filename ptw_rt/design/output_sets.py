@@ -21,7 +21,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import scipy.linalg as sla
 
 from ptw_rt.design import uio_sensors as us
 from ptw_rt.model.parameters import VehicleParameters
@@ -67,18 +66,7 @@ def system(p: VehicleParameters, u: float, outputs: tuple[str, ...], unknown: st
 def zeros(sys: us.SensorSystem) -> np.ndarray:
     """Invariant zeros of the square triple (A, D, C), scaled (tyre forces are 1e4 x the angles)."""
     scale = us.STATE_SCALE if sys.A.shape[0] == us.N_X else np.r_[0.05, us.STATE_SCALE]
-    S = np.diag(scale)
-    A = np.linalg.solve(S, sys.A @ S)
-    D = np.linalg.solve(S, sys.D)
-    C = sys.C @ S
-    C = C / np.linalg.norm(C, axis=1, keepdims=True)
-    n, m = D.shape
-    pa = np.block([[A, D], [C, np.zeros((C.shape[0], m))]])
-    pb = np.zeros((n + m, n + m))
-    pb[:n, :n] = np.eye(n)
-    v = sla.eig(pa, pb, right=False)
-    v = v[np.isfinite(v) & (np.abs(v) < 1e6)]
-    return v[np.lexsort((v.imag, v.real))]
+    return us.invariant_zeros(sys, scale, largest=1e6)
 
 
 def _relative_degrees(sys: us.SensorSystem) -> list[int]:

@@ -170,9 +170,10 @@ def choose_complement_rows(systems: list[SensorSystem], degrees: list[int]) -> t
     return best
 
 
-def invariant_zeros(sys: SensorSystem) -> np.ndarray:
-    """Finite zeros of the square triple (A, D, C), in scaled coordinates (forces are 1e4 x the angles)."""
-    S = np.diag(STATE_SCALE)
+def invariant_zeros(sys: SensorSystem, scale: np.ndarray | None = None, largest: float = 1e9) -> np.ndarray:
+    """Finite zeros of the square triple (A, D, C), in scaled coordinates (forces are 1e4 x the angles):
+    the generalised eigenvalues of the Rosenbrock pencil, those beyond `largest` (infinite zeros) dropped."""
+    S = np.diag(STATE_SCALE if scale is None else scale)
     A = np.linalg.solve(S, sys.A @ S)
     D = np.linalg.solve(S, sys.D)
     C = sys.C @ S
@@ -182,7 +183,7 @@ def invariant_zeros(sys: SensorSystem) -> np.ndarray:
     pb = np.zeros((n + m, n + m))
     pb[:n, :n] = np.eye(n)
     v = sla.eig(pa, pb, right=False)
-    v = v[np.isfinite(v) & (np.abs(v) < 1e9)]
+    v = v[np.isfinite(v) & (np.abs(v) < largest)]
     return v[np.lexsort((v.imag, v.real))]
 
 
