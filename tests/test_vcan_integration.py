@@ -303,6 +303,10 @@ def _run_native(results: Path, script: Path, env_file: Path) -> tuple[int, str]:
     return r.returncode, (r.stdout + r.stderr).decode(errors="replace")
 
 
+# more daemon overruns in one session than this: the VM was starved, run it once more (the variable exercises it)
+STARVED_OVERRUNS = int(os.environ.get("PTW_RT_VCAN_STARVED_OVERRUNS", "50"))
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory) -> Iterator[Session]:
     where, kernel = _where()
@@ -339,19 +343,37 @@ def session(tmp_path_factory) -> Iterator[Session]:
         f"RESULTS='{results}'\nREPO='{REPO}'\nPTW_RT='{ptw_rt}'\nRIDE_LOG='{ride_log}'\n"
         f"SILENT_LOG='{silent_log}'\nSTARTUP_TIMEOUT={STARTUP_TIMEOUT_S}\n"
     )
-    t0 = time.monotonic()
-    if where == "uml":
-        rc, console = _boot_uml(kernel, results, script, env_file)
-    else:
-        rc, console = _run_native(results, script, env_file)
-    wall = time.monotonic() - t0
-    (results / "console.txt").write_text(console)
-    log = (results / "session.log").read_text() if (results / "session.log").exists() else ""
-    if not (results / "done").exists():
-        pytest.fail(
-            f"vcan session ({where}) did not finish (exit {rc})\n--- console ---\n{console[-6000:]}\n"
-            f"--- session.log ---\n{log[-3000:]}"
-        )
+
+    def run_once(results: Path) -> tuple[float, str, str]:
+        t0 = time.monotonic()
+        if where == "uml":
+            rc, console = _boot_uml(kernel, results, script, env_file)
+        else:
+            rc, console = _run_native(results, script, env_file)
+        wall = time.monotonic() - t0
+        (results / "console.txt").write_text(console)
+        log = (results / "session.log").read_text() if (results / "session.log").exists() else ""
+        if not (results / "done").exists():
+            pytest.fail(
+                f"vcan session ({where}) did not finish (exit {rc})\n--- console ---\n{console[-6000:]}\n"
+                f"--- session.log ---\n{log[-3000:]}"
+            )
+        stderr = (results / "daemon.stderr").read_text() if (results / "daemon.stderr").exists() else ""
+        return wall, console, stderr
+
+    wall, console, daemon_stderr = run_once(results)
+    overruns = [int(n) for n in re.findall(r"overruns=(\d+)", daemon_stderr)]
+    if overruns and overruns[-1] > STARVED_OVERRUNS:
+        # the guest lost the CPU for tens of milliseconds at a time (a healthy session has 0-2 overruns): a starved
+        # VM says nothing about the daemon, so the session runs once more, from scratch, and the tests judge that one
+        # (two starved sessions in a row fail them, with the overload hint)
+        starved = results.with_name("results-starved")
+        results.rename(starved)
+        results.mkdir()
+        shutil.copyfile(starved / "vcan_session.sh", script)
+        script.chmod(script.stat().st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
+        shutil.copyfile(starved / "session.env", env_file)
+        wall, console, daemon_stderr = run_once(results)
     status = _read_kv(results / "status.env", int)
     marks = _read_kv(results / "marks.txt", float)
     frames = _parse_candump((results / "candump.log").read_text())
@@ -384,7 +406,7 @@ def session(tmp_path_factory) -> Iterator[Session]:
         ride=log_frames(ride_log),
         silent=log_frames(silent_log),
         replay=log_frames(replay_log),
-        daemon_stderr=(results / "daemon.stderr").read_text() if (results / "daemon.stderr").exists() else "",
+        daemon_stderr=daemon_stderr,
         codec=codec,
     )
     s.figures["session_wall_s"] = round(wall, 1)
