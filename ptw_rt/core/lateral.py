@@ -249,23 +249,18 @@ def lateral_stage(
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
 
 
-STAGE = Stage(
-    name="lateral",
-    state=STATE,
-    params=PARAMS,
-    outputs=OUTPUTS,
-    build_params=build_params,
-    tables=TABLES,
-    new_state=lambda settings, design: np.zeros(STATE.size),
-    reset=lambda st: reset(st),
-    doc="tyre bank of steady-state Kalman filters on the Sharp model: torque, steer rate, v_y, forces, tyre scale",
-)
+def _bank(st: np.ndarray) -> np.ndarray:
+    return st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)]
+
+
+def _bank_params(prm: np.ndarray) -> np.ndarray:
+    return prm[P_BANK : P_BANK + tb.PARAM_SIZE]
 
 
 def reset(st: np.ndarray) -> None:
     """Forget the dynamic states; keep what the bank learned (its evidence and prior)."""
     st[ST_RUN_TIME] = 0.0
-    bank = st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)]
+    bank = _bank(st)
     for h in range(MAX_HYPOTHESES):
         bank[h * tb.BLOCK + kf.INIT] = 0.0
 
@@ -273,9 +268,7 @@ def reset(st: np.ndarray) -> None:
 def set_prior(st: np.ndarray, prm: np.ndarray, scales: np.ndarray, centre: float, restored: bool) -> None:
     """Start the tyre estimate from `centre` x nominal (a persisted value, or a test's wrong start)."""
     sd = prm[P_RESTORED_SD] if restored else prm[P_PRIOR_SD]
-    tb.set_prior(
-        st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)], prm[P_BANK : P_BANK + tb.PARAM_SIZE], scales, centre, sd
-    )
+    tb.set_prior(_bank(st), _bank_params(prm), scales, centre, sd)
     st[ST_BANK_OUT + tb.OUT_SCALE] = 0.0  # the bank has not run on this prior: report its centre until it does
 
 
@@ -284,6 +277,16 @@ def scale_estimate(st: np.ndarray, prm: np.ndarray, out: np.ndarray) -> float:
     k = out[OUT_TYRE_SCALE]
     if k > 0.0:
         return float(k)
-    return float(
-        tb.prior_centre(st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)], prm[P_BANK : P_BANK + tb.PARAM_SIZE])
-    )
+    return float(tb.prior_centre(_bank(st), _bank_params(prm)))
+
+
+STAGE = Stage(
+    name="lateral",
+    state=STATE,
+    params=PARAMS,
+    outputs=OUTPUTS,
+    build_params=build_params,
+    tables=TABLES,
+    reset=reset,
+    doc="tyre bank of steady-state Kalman filters on the Sharp model: torque, steer rate, v_y, forces, tyre scale",
+)
