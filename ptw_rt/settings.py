@@ -46,6 +46,12 @@ ATTITUDE_SCHEMA = Section(
         "initial_gyro_bias_sd": (Number("rad/s", gt=0), 0.01),
         "initial_accel_bias_sd": (Number("m/s^2", gt=0), 0.05),
         "reopen_after_cycles": (Number("", integer=True, gt=0), 50),
+        # consistency monitor (docs/estimator.md, "Attitude consistency"): the running means of the whitened
+        # lateral-force and rotation-axis innovations, over this time constant, against this many standard
+        # deviations of a white sequence's mean; beyond, the roll is not valid and the biases are re-learned
+        "consistency_time": (Number("s", gt=0.05, le=30), 0.5),
+        "consistency_limit": (Number("", gt=1, le=100), 4.0),
+        "consistency_hold": (Number("s", ge=0, le=60), 1.0),
     },
 )
 
@@ -73,6 +79,9 @@ TYRE_BANK_SCHEMA = Section(
         "excitation_window": (Number("s", gt=0), 2.0),
         "min_excitation_lateral_accel": (Number("m/s^2", gt=0), 0.8),
         "min_excitation_yaw_rate": (Number("rad/s", gt=0), 0.04),
+        # filters run each cycle: the most likely tyre and this many on each side (a window of 2 n + 1 that
+        # follows the estimate; the bank's cost is per running filter)
+        "running_half_width": (Number("", integer=True, ge=1, le=64), 3),
     },
 )
 
@@ -303,6 +312,7 @@ class TyreBankTuning:
     excitation_window: float
     min_excitation_lateral_accel: float
     min_excitation_yaw_rate: float
+    running_half_width: int
 
 
 @dataclass(frozen=True)
@@ -326,6 +336,9 @@ class AttitudeTuning:
     initial_gyro_bias_sd: float
     initial_accel_bias_sd: float
     reopen_after_cycles: int
+    consistency_time: float
+    consistency_limit: float
+    consistency_hold: float
 
 
 @dataclass(frozen=True)

@@ -53,8 +53,10 @@ def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0):
     return Y
 
 
-def _run(bank, Y, start: float = 1.0):
+def _run(bank, Y, start: float = 1.0, half_width: int | None = None):
     s, tuning, grid, t = bank
+    if half_width is not None:
+        tuning = replace(tuning, running_half_width=half_width)
     H = len(t["tb_scale"])
     prm = tb.bank_params(H, DT, tuning)
     st = tb.new_state(H)
@@ -103,3 +105,22 @@ def test_mixture_is_a_filter_estimate(bank):
     _, out = _run(bank, Y)
     assert np.all(np.isfinite(out))
     assert abs(out[tb.OUT_Z + ck.PHI] - Y[-1, 4]) < 0.01
+
+
+def test_running_window_walks_to_far_tyres(bank):
+    """Three of the five filters run (the most likely and one on each side): from a start two hypotheses away
+    the window follows the evidence to the true tyres, and the hypotheses that join it start from their
+    neighbour's state (nothing non-finite, the estimate settles as the full bank's does)."""
+    Y = _ride(bank[0], 1.3, 40.0, excite=True, seed=7)
+    trace, out = _run(bank, Y, start=0.7, half_width=1)
+    full, out_full = _run(bank, Y, start=0.7)
+    assert np.all(np.isfinite(trace))
+    assert out[tb.OUT_MAP_SCALE] == pytest.approx(1.3, rel=0.1)
+    assert out[tb.OUT_SCALE] == pytest.approx(out_full[tb.OUT_SCALE], rel=0.02)
+    assert out[tb.OUT_LOG_SD] < 0.05
+
+
+@pytest.mark.parametrize("centre, expected", [(0, 0), (1, 0), (6, 3), (10, 7), (13, 7)])
+def test_running_window_stays_inside_the_bank(centre, expected):
+    assert tb._window_low(14, centre, 3) == expected
+    assert tb._window_low(5, centre % 5, 3) == 0  # a bank no wider than the window runs whole

@@ -76,12 +76,37 @@ STATE = Layout(
     psi_hist=MAX_LATENCY_CYCLES,  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
     psi_head=1,
     rejected=1,  # consecutive rejected lateral-force innovations
+    nu=1,  # whitened innovation e / sqrt(s) of the last scalar update (written by `_update`; 0 if gated out)
+    # the stage's consistency monitor (attitude_stage):
+    mean_lateral=1,  # running mean of the whitened lateral-force innovations
+    mean_pitch=1,  # ... of the rotation-axis constraint's
+    mean_course=1,  # ... of the GPS course's (updated per fix)
+    inconsistent_for=1,  # s the monitor has still to hold its alarm
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
-ST_X, ST_P, ST_INIT, ST_PSI_INIT, ST_PREV, ST_PSI_HIST, ST_PSI_HEAD, ST_REJECTED, ST_TMP = STATE.offsets
+(
+    ST_X,
+    ST_P,
+    ST_INIT,
+    ST_PSI_INIT,
+    ST_PREV,
+    ST_PSI_HIST,
+    ST_PSI_HEAD,
+    ST_REJECTED,
+    ST_NU,
+    ST_MEAN_LATERAL,
+    ST_MEAN_PITCH,
+    ST_MEAN_COURSE,
+    ST_INCONSISTENT_FOR,
+    ST_TMP,
+) = STATE.offsets
 STATE_SIZE = STATE.size
 # rad/s: what a rate not measured this cycle (held, frozen or corrupt frames) may be, as far as the filter knows
 UNMEASURED_RATE_SD = 0.5
+# s between GPS fixes: the contract's 10 Hz GPS_Velocity (a slower serial receiver only makes the course's
+# running mean in the consistency monitor shorter, in fixes, and so less sensitive, never more)
+GPS_FIX_INTERVAL = 0.1
+NU_CLIP = 2.0  # standard deviations: bound of each whitened innovation in the consistency monitor's means
 
 # ---- parameters (float64 vector: `attitude_params` builds the filter's from the config, `build_params` all) ----
 PARAMS = Layout(
@@ -111,6 +136,10 @@ PARAMS = Layout(
     # the stage's (attitude_stage), not the filter's:
     cal_speed=1,  # m/s: below (with a fix, no input fault, rates small), the vehicle stands still
     cal_max_rate=1,  # rad/s: above, the vehicle is moving (rocked) and the gyros are not read as biases
+    consistency_time=1,  # s, time constant of the innovations' running means
+    consistency_limit=1,  # alarm beyond this many standard deviations of a white sequence's running mean
+    consistency_hold=1,  # s an alarm is held after the means are back within half the limit
+    course_interval=1,  # s between GPS fixes (the course's running mean moves per fix)
 )
 (
     A_DT,
@@ -137,6 +166,10 @@ PARAMS = Layout(
     A_REOPEN_AFTER,
     A_CAL_SPEED,
     A_CAL_MAX_RATE,
+    A_CONSISTENCY_TIME,
+    A_CONSISTENCY_LIMIT,
+    A_CONSISTENCY_HOLD,
+    A_COURSE_INTERVAL,
 ) = PARAMS.offsets
 PARAM_SIZE = PARAMS.size
 
@@ -154,9 +187,15 @@ OUTPUTS = Layout(
     vy=1,  # m/s
     rejected=1,  # 1 if this cycle's lateral-force innovation was gated out
     heading=1,  # rad, wrapped to (-pi, pi]
+    nu_lateral=1,  # whitened innovation of this cycle's lateral-force update (0 without one or if gated out)
+    nu_pitch=1,  # whitened innovation of the rotation-axis constraint
+    nu_course=1,  # whitened innovation of this cycle's GPS course (0 without a fix)
+    course_fix=1,  # 1 if a GPS course was fused this cycle
     # the stage's (attitude_stage), not the filter's:
     ok=1,  # 1: the filter is initialised and every output above is finite
     rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
+    consistency=1,  # the larger running mean of the whitened innovations, in standard deviations of a white mean
+    inconsistent=1,  # 1: the innovations say the roll (or a gyro) is not what the filter believes
 )
 (
     OUT_ROLL,
@@ -170,10 +209,16 @@ OUTPUTS = Layout(
     OUT_VY,
     OUT_REJECTED,
     OUT_HEADING,
+    OUT_NU_LATERAL,
+    OUT_NU_PITCH,
+    OUT_NU_COURSE,
+    OUT_COURSE_FIX,
     OUT_OK,
     OUT_REJECTED_RUN,
+    OUT_CONSISTENCY,
+    OUT_INCONSISTENT,
 ) = OUTPUTS.offsets
-N_FILTER_OUT = OUT_HEADING + 1  # what `attitude_step` writes
+N_FILTER_OUT = OUT_COURSE_FIX + 1  # what `attitude_step` writes
 OUT_SIZE = OUTPUTS.size
 
 
@@ -238,7 +283,9 @@ def _update(st: np.ndarray, H: np.ndarray, innovation: float, variance: float, g
     for i in range(N_X):
         s += H[i] * PH[i]
     if not (s > 0.0) or innovation * innovation > gate * gate * s:
+        st[ST_NU] = 0.0
         return False
+    st[ST_NU] = innovation / math.sqrt(s)
     for i in range(N_X):
         x[i] += PH[i] / s * innovation
     for i in range(N_X):
@@ -372,6 +419,10 @@ def attitude_step(
     rg1 = q1 * s + r1 * c
     phid1 = prev[PREV_P] - bp
     rejected = 0.0
+    nu_lateral = 0.0
+    nu_pitch = 0.0
+    nu_course = 0.0
+    course_fix = 0.0
     if rates_ok:
         phidd1 = (p - prev[PREV_P2]) / (2.0 * dt)
         rg_now = (q - bq) * s + (r - br) * c
@@ -393,7 +444,9 @@ def attitude_step(
         variance = prm[A_R_LATERAL] ** 2 + prev[PREV_U_VAR] * rg1 * rg1
         if prev[PREV_RATES_OK] == 0.0 or not rates_ok:  # lever-arm derivatives from held rates: unknown
             variance += (h * UNMEASURED_RATE_SD / dt) ** 2 * 0.01
-        if _update(st, H, prev[PREV_FY] - predicted, variance, gate):
+        accepted = _update(st, H, prev[PREV_FY] - predicted, variance, gate)
+        nu_lateral = st[ST_NU]
+        if accepted:
             st[ST_REJECTED] = 0.0
         else:
             rejected = 1.0
@@ -412,6 +465,7 @@ def attitude_step(
         H[X_BQ] = -c
         H[X_BR] = s
         _update(st, H, -(q1 * c - r1 * s), prm[A_R_PITCH_RATE] ** 2, gate)
+        nu_pitch = st[ST_NU]
 
     if standstill and rates_ok:
         # the true rates and the sideslip are zero: the gyros read their biases
@@ -445,6 +499,8 @@ def attitude_step(
             H[X_PSI] = 1.0
             H[X_VY] = 1.0 / u
             _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2, gate)
+            nu_course = st[ST_NU]
+            course_fix = 1.0
 
     # ---- 3. predict to this cycle: trapezoidal integration of the previous and this cycle's rates (both are
     # known; the rectangle rule's dt^2 phi''/2 per step adds up to ~0.2 deg in a quick lane change) ----
@@ -530,6 +586,10 @@ def attitude_step(
     out[OUT_VY] = x[X_VY]
     out[OUT_REJECTED] = rejected
     out[OUT_HEADING] = _wrap(x[X_PSI])
+    out[OUT_NU_LATERAL] = nu_lateral
+    out[OUT_NU_PITCH] = nu_pitch
+    out[OUT_NU_COURSE] = nu_course
+    out[OUT_COURSE_FIX] = course_fix
 
 
 # ---- the estimator's stage: the filter with its inputs from the inputs and speed stages ----
@@ -547,6 +607,11 @@ def build_params(settings, design) -> np.ndarray:
     )
     prm[A_CAL_SPEED] = sens.gyro_calibration_speed
     prm[A_CAL_MAX_RATE] = sens.gyro_calibration_max_rate
+    tuning = settings.estimator.attitude
+    prm[A_CONSISTENCY_TIME] = tuning.consistency_time
+    prm[A_CONSISTENCY_LIMIT] = tuning.consistency_limit
+    prm[A_CONSISTENCY_HOLD] = tuning.consistency_hold
+    prm[A_COURSE_INTERVAL] = GPS_FIX_INTERVAL
     return prm
 
 
@@ -587,6 +652,69 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
     )
     out[OUT_OK] = 1.0 if st[ST_INIT] == 1.0 and all_finite(out, N_FILTER_OUT) else 0.0
     out[OUT_REJECTED_RUN] = st[ST_REJECTED]
+    # re-learning the biases is for riding; at a stop the zero-rate calibration reads them, and a rider rocking
+    # the scooter there is motion the filter cannot model, not a bias
+    riding = speed_known and u >= prm[A_COURSE_MIN_SPEED]
+    consistency_monitor(st, prm, out, riding)
+
+
+@njit(cache=True)
+def _reacquire_biases(st: np.ndarray, prm: np.ndarray) -> None:
+    """The innovations contradict the biases the filter believes (a gyro whose bias stepped, a scale error):
+    reopen the biases' and the roll's uncertainty by their initial spread so the data can move them again."""
+    P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
+    for b in (X_BP, X_BQ, X_BR):
+        P[b, b] += prm[A_INIT_GYRO_BIAS_SD] ** 2
+    P[X_BAY, X_BAY] += prm[A_INIT_ACCEL_BIAS_SD] ** 2
+    P[X_PHI, X_PHI] += prm[A_INIT_ROLL_SD] ** 2
+
+
+@njit(cache=True)
+def _clip_nu(nu: float) -> float:
+    """A whitened innovation as the running means take it: a burst of large ones of either sign (a slide or a
+    weave in a deep corner, which the sideslip state cannot follow) is not a bias, and a bias shows as a
+    persistent shift well inside this bound."""
+    return min(max(nu, -NU_CLIP), NU_CLIP)
+
+
+@njit(cache=True)
+def consistency_monitor(st: np.ndarray, prm: np.ndarray, out: np.ndarray, riding: bool) -> None:
+    """Is the filter consistent with its data? A consistent filter's whitened innovations are zero-mean with
+    unit variance; a bias that stepped or a gyro scale error biases them for as long as the filter believes
+    the wrong thing, which a running mean sees long before the error is large (docs/estimator.md, "Attitude
+    consistency"). The statistic is the larger |running mean| of the lateral-force and rotation-axis
+    innovations in standard deviations of a white sequence's running mean; beyond the limit the roll is
+    flagged (OUT_INCONSISTENT, held while the means stay above half the limit and for the hold time after) and
+    the biases' uncertainty is reopened once per alarm while `riding`."""
+    dt = prm[A_DT]
+    alpha = min(dt / prm[A_CONSISTENCY_TIME], 1.0)
+    # the GPS course comes once per fix: its mean moves per fix, by the fix interval's share
+    alpha_fix = min(prm[A_COURSE_INTERVAL] / prm[A_CONSISTENCY_TIME], 1.0)
+    if out[OUT_OK] == 0.0:
+        st[ST_MEAN_LATERAL] = 0.0
+        st[ST_MEAN_PITCH] = 0.0
+        st[ST_MEAN_COURSE] = 0.0
+    else:
+        st[ST_MEAN_LATERAL] += alpha * (_clip_nu(out[OUT_NU_LATERAL]) - st[ST_MEAN_LATERAL])
+        st[ST_MEAN_PITCH] += alpha * (_clip_nu(out[OUT_NU_PITCH]) - st[ST_MEAN_PITCH])
+        if out[OUT_COURSE_FIX] != 0.0:
+            st[ST_MEAN_COURSE] += alpha_fix * (_clip_nu(out[OUT_NU_COURSE]) - st[ST_MEAN_COURSE])
+    white_sd = math.sqrt(alpha / (2.0 - alpha))  # sd of the running mean of a white unit-variance sequence
+    white_sd_fix = math.sqrt(alpha_fix / (2.0 - alpha_fix))
+    stat = max(
+        max(abs(st[ST_MEAN_LATERAL]), abs(st[ST_MEAN_PITCH])) / white_sd, abs(st[ST_MEAN_COURSE]) / white_sd_fix
+    )
+    limit = prm[A_CONSISTENCY_LIMIT]
+    if stat > limit:
+        if st[ST_INCONSISTENT_FOR] <= 0.0 and riding:
+            _reacquire_biases(st, prm)
+        st[ST_INCONSISTENT_FOR] = prm[A_CONSISTENCY_HOLD] + dt
+    elif stat > 0.5 * limit and st[ST_INCONSISTENT_FOR] > 0.0:
+        st[ST_INCONSISTENT_FOR] = prm[A_CONSISTENCY_HOLD] + dt
+    elif st[ST_INCONSISTENT_FOR] > 0.0:
+        st[ST_INCONSISTENT_FOR] -= dt
+    out[OUT_CONSISTENCY] = stat
+    out[OUT_INCONSISTENT] = 1.0 if st[ST_INCONSISTENT_FOR] > 0.0 else 0.0
 
 
 STAGE = Stage(

@@ -51,6 +51,8 @@ REASON_DECODE_ERRORS = 1 << 5
 REASON_COUNTER_JUMPS = 1 << 6
 REASON_OVERRUN = 1 << 7
 REASON_SEND_FAILURE = 1 << 8
+REASON_IMPLAUSIBLE = 1 << 9  # the published channel and the UIHOSMO on the sensors disagree (diagnostics)
+REASON_ATTITUDE_INCONSISTENT = 1 << 10  # the attitude filter's innovations contradict it (a gyro fault)
 REASON_NAMES = (
     "speed_low",
     "gps_lost",
@@ -61,6 +63,8 @@ REASON_NAMES = (
     "counter_jumps",
     "overrun",
     "send_failure",
+    "implausible",
+    "attitude_inconsistent",
 )
 
 # EST_Status.Mode

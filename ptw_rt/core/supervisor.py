@@ -39,6 +39,7 @@ from ptw_rt.core.layout import (
     MODE_FAULT,
     MODE_INIT,
     MODE_VALID,
+    REASON_ATTITUDE_INCONSISTENT,
     REASON_DIVERGING,
     REASON_GPS_LOST,
     REASON_SPEED_LOW,
@@ -162,8 +163,10 @@ def supervisor_stage(
         or stiffness[stf.OUT_DIVERGED] != 0.0
     )
     _raise(st, (reasons_now | REASON_DIVERGING) if diverged else reasons_now, prm[P_REASON_HOLD])
+    if attitude[att.OUT_INCONSISTENT] != 0.0:  # held by the attitude stage's own monitor
+        reasons_now |= REASON_ATTITUDE_INCONSISTENT
     # conditions that are states, not events, end as soon as they end
-    states = REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE
+    states = REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE | REASON_ATTITUDE_INCONSISTENT
     reasons = (reasons_now & states) | (_held_reasons(st) & ~states)
 
     core_ok = inputs[inp.OUT_CORE_OK] != 0.0
@@ -185,12 +188,16 @@ def supervisor_stage(
         mode = MODE_VALID
 
     valid = 0
+    attitude_consistent = attitude[att.OUT_INCONSISTENT] == 0.0
     if core_ok:
-        valid |= V_ROLL_RATE | V_STEER
+        valid |= V_STEER
+        if attitude_consistent:  # the roll rate is the gyro less a bias the monitor doubts
+            valid |= V_ROLL_RATE
     # roll is valid from its own uncertainty: 3 sigma within the documented tolerance, filter consistent
     roll_sd = attitude[att.OUT_ROLL_SD] if attitude[att.OUT_OK] != 0.0 else math.inf
     if (
-        inputs[inp.OUT_RATES_OK] != 0.0
+        attitude_consistent
+        and inputs[inp.OUT_RATES_OK] != 0.0
         and accel_ok
         and 3.0 * roll_sd <= prm[P_ROLL_TOLERANCE]
         and attitude[att.OUT_REJECTED_RUN] < prm[P_MAX_REJECTED]

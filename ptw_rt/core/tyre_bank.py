@@ -44,7 +44,8 @@ B_NIS_FAST_ALPHA = 6  # the same over a short window: a sudden change of road sh
 B_EXCITATION_ALPHA = 7  # share of each cycle in the mean squares of a_y and yaw rate (excitation)
 B_MIN_AY = 8  # m/s^2: RMS lateral acceleration above which the ride tells tyres apart ...
 B_MIN_YAW_RATE = 9  # rad/s: ... or RMS yaw rate
-PARAM_SIZE = 10
+B_HALF_WIDTH = 10  # hypotheses run each cycle: the most likely one and this many on each side (module doc)
+PARAM_SIZE = 11
 
 # ---- state layout: H blocks of (z, init) then per-hypothesis vectors then scalars ----
 BLOCK = kf.STATE_SIZE  # one fusion filter's state
@@ -84,7 +85,9 @@ SC_CENTRE = 0  # log k of the prior's centre
 SC_INIT = 1  # 1 once the prior is set
 SC_MS_AY = 2  # windowed mean square of a_y
 SC_MS_R = 3  # windowed mean square of the yaw rate
-N_SCALARS = 4
+SC_LOW = 4  # first hypothesis of the running window
+SC_MAP = 5  # the most likely hypothesis of the last cycle (the next window's centre)
+N_SCALARS = 6
 
 # ---- outputs ----
 OUT_Z = 0  # posterior mixture of the filters' corrected states (kf.N_Z)
@@ -114,6 +117,7 @@ def bank_params(count: int, dt: float, tuning) -> np.ndarray:
     prm[B_EXCITATION_ALPHA] = 1.0 - math.exp(-dt / tuning.excitation_window)
     prm[B_MIN_AY] = tuning.min_excitation_lateral_accel
     prm[B_MIN_YAW_RATE] = tuning.min_excitation_yaw_rate
+    prm[B_HALF_WIDTH] = tuning.running_half_width
     return prm
 
 
@@ -134,6 +138,30 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float,
         st[_nis_fast0(H) + h] = kf.N_Y
     st[_scalars0(H) + SC_CENTRE] = lc
     st[_scalars0(H) + SC_INIT] = 1.0
+    best = 0
+    for h in range(1, H):
+        if abs(math.log(scale[h]) - lc) < abs(math.log(scale[best]) - lc):
+            best = h
+    st[_scalars0(H) + SC_MAP] = best
+    st[_scalars0(H) + SC_LOW] = _window_low(H, best, int(prm[B_HALF_WIDTH]))
+
+
+@njit(cache=True)
+def _window_low(count: int, centre: int, half_width: int) -> int:
+    """First hypothesis of the running window around `centre`: 2 half_width + 1 of them, shifted inside the bank
+    at its ends (all of them when the bank is not wider)."""
+    return max(0, min(centre - half_width, count - 1 - 2 * half_width))
+
+
+@njit(cache=True)
+def _enter_window(st: np.ndarray, count: int, h: int, source: int) -> None:
+    """Hypothesis h joins the running window next to `source` (the old window's end): it starts from that
+    filter's state and evidence, so it is as likely as its neighbour until the data tell them apart."""
+    for k in range(BLOCK):
+        st[h * BLOCK + k] = st[source * BLOCK + k]
+    st[_logl0(count) + h] = st[_logl0(count) + source]
+    st[_nis0(count) + h] = st[_nis0(count) + source]
+    st[_nis_fast0(count) + h] = st[_nis_fast0(count) + source]
 
 
 @njit(cache=True)
@@ -193,17 +221,30 @@ def bank_step(
     forget = prm[B_LEARN_FORGET] if learn else prm[B_IDLE_FORGET]
     alpha = prm[B_NIS_ALPHA]
 
+    # 0. the running window follows the most likely hypothesis; the ones that join it start from their neighbour
+    sc = _scalars0(H)
+    half = int(prm[B_HALF_WIDTH])
+    old_lo = int(st[sc + SC_LOW])
+    old_hi = min(H - 1, old_lo + 2 * half)
+    lo = _window_low(H, int(st[sc + SC_MAP]), half)
+    hi = min(H - 1, lo + 2 * half)
+    for h in range(lo, hi + 1):
+        if h < old_lo:
+            _enter_window(st, H, h, old_lo)
+        elif h > old_hi:
+            _enter_window(st, H, h, old_hi)
+    st[sc + SC_LOW] = lo
+
     # 1. evidence: the innovation of each filter's prediction (a filter that just (re)started has none).
     # Only an excited ride tells tyres apart: on a straight road every filter sees the same noise, and
     # the likelihood would only rank how well each one's noise model fits it (tests/test_tyre_bank.py).
-    sc = _scalars0(H)
     if observe:
         a = prm[B_EXCITATION_ALPHA]
         st[sc + SC_MS_AY] += a * (y[3] * y[3] - st[sc + SC_MS_AY])
         st[sc + SC_MS_R] += a * (y[1] * y[1] - st[sc + SC_MS_R])
     excited = st[sc + SC_MS_AY] > prm[B_MIN_AY] ** 2 or st[sc + SC_MS_R] > prm[B_MIN_YAW_RATE] ** 2
     learn = learn and observe and excited
-    for h in range(H):
+    for h in range(lo, hi + 1):
         z = st[h * BLOCK : h * BLOCK + kf.N_Z]
         if observe and st[h * BLOCK + kf.INIT] != 0.0:
             j = h * G + i
@@ -226,34 +267,34 @@ def bank_step(
         else:
             logl[h] = prior[h] + forget * (logl[h] - prior[h])
 
-    # 2. posterior (the floor keeps every hypothesis within reach of the best: a road can change)
-    best = logl[0]
-    for h in range(1, H):
+    # 2. posterior over the window (the floor keeps every hypothesis within reach of the best: a road can change)
+    best = logl[lo]
+    for h in range(lo + 1, hi + 1):
         if logl[h] > best:
             best = logl[h]
     total = 0.0
-    for h in range(H):
+    for h in range(lo, hi + 1):
         if not logl[h] >= best - prm[B_FLOOR]:  # also a NaN
             logl[h] = best - prm[B_FLOOR]
         total += math.exp(logl[h] - best)
     mean_log = 0.0
-    map_h = 0
+    map_h = lo
     map_w = 0.0
-    for h in range(H):
+    for h in range(lo, hi + 1):
         wh = math.exp(logl[h] - best) / total
         mean_log += wh * math.log(scale[h])
         if wh > map_w:
             map_w = wh
             map_h = h
     var_log = 0.0
-    for h in range(H):
+    for h in range(lo, hi + 1):
         dl = math.log(scale[h]) - mean_log
         var_log += math.exp(logl[h] - best) / total * dl * dl
 
     # 3. every filter's step; the published states are the posterior mixture of the corrected ones
     for k in range(kf.N_Z):
         out[OUT_Z + k] = 0.0
-    for h in range(H):
+    for h in range(lo, hi + 1):
         block = h * G
         kf.kalman_step(
             st[h * BLOCK : (h + 1) * BLOCK],
@@ -279,3 +320,4 @@ def bank_step(
     out[OUT_MAP_SCALE] = scale[map_h]
     out[OUT_MAP_NIS_FAST] = nisf[map_h]
     out[OUT_LEARNING] = 1.0 if learn else 0.0
+    st[sc + SC_MAP] = map_h
