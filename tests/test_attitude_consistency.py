@@ -42,9 +42,7 @@ def test_healthy_rides_raise_no_alarm(scenario):
 @pytest.mark.slow
 @pytest.mark.parametrize("bias", [0.05, -0.05])
 def test_roll_gyro_bias_step_is_flagged_and_relearned(bias):
-    t, scored, roll_valid, flagged, err_deg = _run(
-        "slalom_30", [f"roll_gyro_bias_step={bias}", f"fault_at={FAULT_AT}"]
-    )
+    t, scored, roll_valid, flagged, err_deg = _run("slalom_30", [f"roll_gyro_bias_step={bias}", f"fault_at={FAULT_AT}"])
     first = t[flagged][0] if flagged.any() else math.inf
     assert FAULT_AT < first <= FAULT_AT + 1.5  # seen within 1.5 s (0.6 s on this ride)
     during = flagged & (t < first + 0.5)

@@ -701,9 +701,7 @@ def consistency_monitor(st: np.ndarray, prm: np.ndarray, out: np.ndarray, riding
             st[ST_MEAN_COURSE] += alpha_fix * (_clip_nu(out[OUT_NU_COURSE]) - st[ST_MEAN_COURSE])
     white_sd = math.sqrt(alpha / (2.0 - alpha))  # sd of the running mean of a white unit-variance sequence
     white_sd_fix = math.sqrt(alpha_fix / (2.0 - alpha_fix))
-    stat = max(
-        max(abs(st[ST_MEAN_LATERAL]), abs(st[ST_MEAN_PITCH])) / white_sd, abs(st[ST_MEAN_COURSE]) / white_sd_fix
-    )
+    stat = max(max(abs(st[ST_MEAN_LATERAL]), abs(st[ST_MEAN_PITCH])) / white_sd, abs(st[ST_MEAN_COURSE]) / white_sd_fix)
     limit = prm[A_CONSISTENCY_LIMIT]
     if stat > limit:
         if st[ST_INCONSISTENT_FOR] <= 0.0 and riding:
