@@ -585,6 +585,35 @@ def test_restart_with_learned_stiffness_through_the_state_file(tmp_path):
     np.testing.assert_allclose(again.stiffness, learned, rtol=1e-9)
 
 
+def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
+    """The attitude filter's biases are saved with the tyres and start the next boot (rather than 10 s of
+    re-learning from the configured zero); a file of before they were kept restores the tyres alone."""
+    from ptw_rt.core import attitude as att
+
+    state = tmp_path / "state.json"
+    first = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    learned = first.runner.estimator.design.ad_theta_nominal * 0.9
+    biases = (0.004, -0.002, 0.003, -0.05)
+    first.runner.estimator.learned_sensor_biases = lambda: biases  # what a ride would have taught it
+
+    def learn(now, e):
+        if first.cycles == 20:
+            first.runner.estimator.restore_stiffness(learned)
+        if first.cycles >= 20:
+            e[E_VALID] = int(e[E_VALID]) | V_CORNERING | V_CAMBER
+
+    first.on_cycle = learn
+    _run(first, 0.5)
+    saved, reason = load_state(state, first.settings.config_hash)
+    assert saved is not None, reason
+    assert saved.sensor_biases == pytest.approx(biases)
+
+    second = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    assert second.state_note.startswith("restored learned tyre stiffness and sensor biases")
+    x = second.runner.estimator.states["attitude"][att.ST_X : att.ST_X + att.N_X]
+    assert (x[att.X_BP], x[att.X_BQ], x[att.X_BR], x[att.X_BAY]) == pytest.approx(biases)
+
+
 def test_restart_cli_restores_from_the_state_file(tmp_path):
     """The README's promise end to end: ``ptw-rt run`` twice on the same state file, as systemd restarts it."""
     from ptw_rt.design.file import load_design

@@ -112,6 +112,24 @@ def test_standstill_calibrates_the_gyro_biases_and_riding_uses_them(estimator_fa
     assert out[lay.E_YAW_GYRO_BIAS] == pytest.approx(learned, abs=1e-4)
 
 
+def test_sensor_biases_learned_at_a_stop_restore_into_a_new_estimator(estimator_factory):
+    est = estimator_factory()
+    out = lay.new_estimates()
+    for k in range(3000):
+        est.step(standing_sample(k * 0.01, roll_bias=0.004, yaw_bias=-0.003), out)
+    learned = est.learned_sensor_biases()
+    assert learned is not None and learned[0] == pytest.approx(0.004, abs=2e-4)
+    fresh = estimator_factory()
+    assert fresh.learned_sensor_biases() is None  # nothing to keep before the filter ran
+    fresh.restore_sensor_biases(learned)
+    out = ride(fresh, 1.0)  # riding at once: the restored biases are used, roll starts from the data
+    assert out[lay.E_ROLL_GYRO_BIAS] == pytest.approx(learned[0], abs=5e-4)
+    assert out[lay.E_YAW_GYRO_BIAS] == pytest.approx(learned[2], abs=5e-4)
+    assert abs(out[lay.E_ROLL] - math.atan(20.0 * 0.05 / 9.81)) < math.radians(2.0)
+    with pytest.raises(ValueError):
+        fresh.restore_sensor_biases([0.0, float("nan"), 0.0, 0.0])
+
+
 def test_silent_imu_is_a_fault_and_recovery_needs_no_restart(estimator_factory):
     est = estimator_factory()
     out = ride(est, 4.0)

@@ -178,3 +178,34 @@ def test_no_temp_files_accumulate(tmp_path):
         save_state(path, (1.0 + k, 2.0, 3.0, 4.0), HASH)
     assert sorted(os.listdir(tmp_path)) == ["state.json"]
     assert load_state(path, HASH)[0].stiffness[0] == 20.0
+
+
+def test_sensor_biases_round_trip_and_are_optional(tmp_path):
+    from ptw_rt.io.state_file import sensor_bias_bounds
+
+    path = tmp_path / "state.json"
+    biases = (0.004, -0.002, 0.0031, -0.05)
+    bounds = sensor_bias_bounds(0.1, 0.5)
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h", sensor_biases=biases)
+    state, reason = load_state(path, "h", bounds)
+    assert reason == "ok" and state.sensor_biases == pytest.approx(biases)
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h")  # a file of before the biases were kept still loads
+    state, reason = load_state(path, "h", bounds)
+    assert reason == "ok" and state.sensor_biases is None
+
+
+@pytest.mark.parametrize("bad", [0.5, "x", None, float("inf")])
+def test_a_bad_sensor_bias_refuses_the_whole_file(tmp_path, bad):
+    from ptw_rt.io.state_file import sensor_bias_bounds
+
+    path = tmp_path / "state.json"
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h", sensor_biases=(0.0, 0.0, 0.0, 0.0))
+    doc = json.loads(path.read_text())
+    doc["sensor_biases"]["yaw_gyro"] = bad
+    path.write_text(json.dumps(doc))
+    state, reason = load_state(path, "h", sensor_bias_bounds(0.1, 0.5))
+    assert state is None and "yaw_gyro" in reason
+    del doc["sensor_biases"]["yaw_gyro"]
+    path.write_text(json.dumps(doc))
+    state, reason = load_state(path, "h", sensor_bias_bounds(0.1, 0.5))
+    assert state is None and "lacks sensor_biases values: yaw_gyro" in reason

@@ -351,7 +351,7 @@ def set_biases(st: np.ndarray, bp: float, bq: float, br: float, bay: float, sd_g
     x[X_BP], x[X_BQ], x[X_BR], x[X_BAY] = bp, bq, br, bay
     P[X_BP, X_BP] = P[X_BQ, X_BQ] = P[X_BR, X_BR] = sd_gyro * sd_gyro
     P[X_BAY, X_BAY] = sd_accel * sd_accel
-    st[ST_INIT] = 1.0
+    st[ST_INIT] = 2.0  # roll, heading and sideslip start from the next sample's data, these biases kept
 
 
 @njit(cache=True)

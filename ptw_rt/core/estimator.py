@@ -97,6 +97,9 @@ from ptw_rt.core.layout import (
 )
 from ptw_rt.core.stage import Stage, pack, v1
 
+# share of the configured initial bias uncertainty a bias restored from the state file starts with
+RESTORED_BIAS_SHARE = 0.3
+
 # the stages, in the order they run; the names below index every per-stage row
 STAGES: tuple[Stage, ...] = (
     inp.STAGE,
@@ -281,6 +284,29 @@ class Estimator:
         """[C_af, C_gf, C_ar, C_gr] in N/rad: the tyre bank's scale times the nominal file's."""
         k = lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])
         return k * np.asarray(self.settings.vehicle.nominal_stiffness())
+
+    def learned_sensor_biases(self) -> tuple[float, float, float, float] | None:
+        """(b_p, b_q, b_r [rad/s], b_ay [m/s^2]) the attitude filter has learned, or None while it has no sound
+        estimate (not initialised, or its consistency monitor doubts it): what the state file may keep."""
+        out = self.outputs["attitude"]
+        if out[att.OUT_OK] == 0.0 or out[att.OUT_INCONSISTENT] != 0.0:
+            return None
+        return float(out[att.OUT_BP]), float(out[att.OUT_BQ]), float(out[att.OUT_BR]), float(out[att.OUT_BAY])
+
+    def restore_sensor_biases(self, values) -> None:
+        """Start the attitude filter from sensor biases learned on an earlier ride (the state file), with
+        RESTORED_BIAS_SHARE of the configured initial uncertainty: a bias drifts between rides (temperature),
+        so the ride confirms or corrects it."""
+        values = np.asarray(values, dtype=float)
+        if values.shape != (4,) or not np.all(np.isfinite(values)):
+            raise ValueError("expected four finite sensor biases")
+        tuning = self.settings.estimator.attitude
+        att.set_biases(
+            self.states["attitude"],
+            *values,
+            RESTORED_BIAS_SHARE * tuning.initial_gyro_bias_sd,
+            RESTORED_BIAS_SHARE * tuning.initial_accel_bias_sd,
+        )
 
     def learned_tyre_scale(self) -> float:
         return lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])

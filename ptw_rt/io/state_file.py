@@ -22,7 +22,12 @@ File content (format ``ptw-rt-state``, version 1)::
 
     {"format": "ptw-rt-state", "version": 1, "config_hash": "...", "saved_at": "2024-05-01T12:00:00.000+00:00",
      "stiffness": {"front_cornering": ..., "front_camber": ..., "rear_cornering": ..., "rear_camber": ...},
+     "sensor_biases": {"roll_gyro": ..., "pitch_gyro": ..., "yaw_gyro": ..., "lateral_accel": ...},
      "extra": {...}}
+
+``sensor_biases`` (the attitude filter's gyro biases in rad/s and lateral accelerometer bias in m/s^2, bounded by
+``sensor_bias_bounds``) is optional: files written before it existed still load; when present it is checked like
+every other group and a bad value refuses the whole file.
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ __all__ = [
     "STATE_FORMAT",
     "STATE_VERSION",
     "STIFFNESS_KEYS",
+    "SENSOR_BIAS_KEYS",
     "STATE_FIELDS",
     "LoadedState",
     "StateField",
@@ -53,6 +59,7 @@ __all__ = [
     "remove_orphan_temp_files",
     "restore_state",
     "save_state",
+    "sensor_bias_bounds",
     "stiffness_bounds",
 ]
 
@@ -75,6 +82,7 @@ class StateField:
     unit: str
     shape: tuple[int, ...] = ()
     positive: bool = True  # a stiffness is > 0; a covariance's off-diagonal terms are not
+    optional: bool = False  # its group may be absent (older files); if present, every key of it is checked
 
     @property
     def name(self) -> str:
@@ -82,7 +90,13 @@ class StateField:
 
 
 # The learned values: what load_state checks (bounds come from the caller, keyed by StateField.name).
-STATE_FIELDS: tuple[StateField, ...] = tuple(StateField("stiffness", key, "N/rad") for key in STIFFNESS_KEYS)
+# order of the ``sensor_biases`` sequence: the attitude filter's b_p, b_q, b_r [rad/s] and b_ay [m/s^2]
+SENSOR_BIAS_KEYS = ("roll_gyro", "pitch_gyro", "yaw_gyro", "lateral_accel")
+_SENSOR_BIAS_UNITS = ("rad/s", "rad/s", "rad/s", "m/s^2")
+STATE_FIELDS: tuple[StateField, ...] = tuple(StateField("stiffness", key, "N/rad") for key in STIFFNESS_KEYS) + tuple(
+    StateField("sensor_biases", key, unit, positive=False, optional=True)
+    for key, unit in zip(SENSOR_BIAS_KEYS, _SENSOR_BIAS_UNITS, strict=True)
+)
 
 Bounds = Mapping[str, tuple[float, float]]
 
@@ -96,6 +110,12 @@ def stiffness_bounds(nominal: Sequence[float], deviation_bound: Sequence[float])
     }
 
 
+def sensor_bias_bounds(max_gyro_bias: float, max_accel_bias: float) -> dict[str, tuple[float, float]]:
+    """Bounds of the persisted sensor biases: +- what the attitude filter may plausibly have learned."""
+    limits = (max_gyro_bias, max_gyro_bias, max_gyro_bias, max_accel_bias)
+    return {f"sensor_biases.{key}": (-abs(b), abs(b)) for key, b in zip(SENSOR_BIAS_KEYS, limits, strict=True)}
+
+
 @dataclass(frozen=True)
 class LoadedState:
     """A state file that passed every check. ``stiffness`` is (C_af, C_gf, C_ar, C_gr) in N/rad."""
@@ -105,6 +125,7 @@ class LoadedState:
     saved_at: str
     extra: dict[str, Any] = field(default_factory=dict)
     values: dict[str, Any] = field(default_factory=dict)  # every STATE_FIELDS value by StateField.name
+    sensor_biases: tuple[float, float, float, float] | None = None  # SENSOR_BIAS_KEYS order, if the file has them
 
 
 @dataclass(frozen=True)
@@ -159,8 +180,10 @@ def save_state(
     stiffness: Sequence[float],
     config_hash: str,
     extra: Mapping[str, Any] | None = None,
+    sensor_biases: Sequence[float] | None = None,
 ) -> Path:
-    """Atomically write the learned stiffness (C_af, C_gf, C_ar, C_gr in N/rad) to ``path``; returns the path.
+    """Atomically write the learned stiffness (C_af, C_gf, C_ar, C_gr in N/rad), and the sensor biases if given
+    (SENSOR_BIAS_KEYS order), to ``path``; returns the path.
 
     Creates the parent directory if missing. Raises ``ValueError`` for non-finite or non-positive values
     (nothing is written), ``TypeError`` if ``extra`` is not JSON-serialisable and ``OSError`` if the file
@@ -175,6 +198,11 @@ def save_state(
         "saved_at": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
         "stiffness": dict(zip(STIFFNESS_KEYS, values, strict=True)),
     }
+    if sensor_biases is not None:
+        biases = [float(b) for b in sensor_biases]
+        if len(biases) != len(SENSOR_BIAS_KEYS) or not all(math.isfinite(b) for b in biases):
+            raise ValueError(f"expected {len(SENSOR_BIAS_KEYS)} finite sensor biases, got {sensor_biases!r}")
+        doc["sensor_biases"] = dict(zip(SENSOR_BIAS_KEYS, biases, strict=True))
     if extra:
         doc["extra"] = dict(extra)
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
@@ -274,14 +302,19 @@ def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None)
             f"current {str(config_hash)[:12]})"
         )
     values: dict[str, Any] = {}
-    for group in dict.fromkeys(spec.group for spec in STATE_FIELDS):
-        if not isinstance(doc.get(group), dict):
-            return None, f"state file {path} has no {group} object"
-    missing = [spec.key for spec in STATE_FIELDS if spec.key not in doc[spec.group]]
-    if missing:
-        return None, f"state file {path} lacks {STATE_FIELDS[0].group} values: {', '.join(missing)}"
-    problems = []
+    fields = []  # the rows this file must satisfy: every mandatory one, an optional group's if it is there
     for spec in STATE_FIELDS:
+        if spec.optional and spec.group not in doc:
+            continue
+        if not isinstance(doc.get(spec.group), dict):
+            return None, f"state file {path} has no {spec.group} object"
+        fields.append(spec)
+    for group in dict.fromkeys(spec.group for spec in fields):
+        missing = [spec.key for spec in fields if spec.group == group and spec.key not in doc[group]]
+        if missing:
+            return None, f"state file {path} lacks {group} values: {', '.join(missing)}"
+    problems = []
+    for spec in fields:
         value = doc[spec.group][spec.key]
         problem = _check_value(spec, value, bounds)
         if problem:
@@ -299,6 +332,9 @@ def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None)
         saved_at=saved_at[:40] if isinstance(saved_at, str) else "",
         extra=extra if isinstance(extra, dict) else {},
         values=values,
+        sensor_biases=tuple(float(values[f"sensor_biases.{k}"]) for k in SENSOR_BIAS_KEYS)  # type: ignore[arg-type]
+        if "sensor_biases" in doc
+        else None,
     )
     return state, "ok"
 

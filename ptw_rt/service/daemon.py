@@ -76,7 +76,7 @@ from ptw_rt.edge.cycle import CycleRunner, build_runner
 from ptw_rt.errors import EXIT_UNAVAILABLE, UserFacingError
 from ptw_rt.io.dbc import DbcError
 from ptw_rt.io.nmea import NmeaParser, SerialGnssReader
-from ptw_rt.io.state_file import restore_state, save_state, stiffness_bounds
+from ptw_rt.io.state_file import restore_state, save_state, sensor_bias_bounds, stiffness_bounds
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.service.logs import HealthSummary, RateLimitedLog, setup_logging
 from ptw_rt.service.realtime import apply_realtime, normal_scheduling, restore_scheduling, thread_scheduling
@@ -94,6 +94,8 @@ SEND_TIMEOUT_S = 0.005  # one bus.send may wait this long for room in the transm
 SEND_QUEUE_FRAMES = 64  # ~13 cycles of output: beyond, the oldest frames are dropped (stale estimates are useless)
 OVERRUN_WINDOW_S = 1.0  # the overrun rule: DEGRADED while more than OVERRUN_DEGRADED_LIMIT cycles were missed
 OVERRUN_DEGRADED_LIMIT = 2  # within the last OVERRUN_WINDOW_S (docs/daemon.md, "Overruns")
+# a persisted sensor bias beyond this many times its configured initial uncertainty is not one the filter learned
+MAX_BIAS_SHARES = 10.0
 _BITRATE_INTERFACES = frozenset({"pcan", "kvaser", "ixxat", "vector", "slcan", "gs_usb", "nican", "canalystii"})
 _RX_QUEUE_MAX = 20000
 _SEND_ERRORS = (can.CanError, OSError, ValueError)  # ValueError: a bus closed under the sender
@@ -448,9 +450,11 @@ class Daemon:
         if not path:
             return
         design = self.runner.estimator.design
-        loaded = restore_state(
-            path, self.settings.config_hash, stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound)
+        tuning = self.settings.estimator.attitude
+        bounds = stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound) | sensor_bias_bounds(
+            MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * tuning.initial_accel_bias_sd
         )
+        loaded = restore_state(path, self.settings.config_hash, bounds)
         if loaded.removed_temp_files:
             log.info("removed %d orphan temporary state files", len(loaded.removed_temp_files))
         state = loaded.state
@@ -460,24 +464,31 @@ class Daemon:
             return
         try:
             self.runner.estimator.restore_stiffness(state.stiffness)
+            if state.sensor_biases is not None:
+                self.runner.estimator.restore_sensor_biases(state.sensor_biases)
         except ValueError as exc:
             self.state_note = f"state file {path} ignored: {exc}"
             log.warning(self.state_note)
             return
-        self.state_note = f"restored learned tyre stiffness from {path} (saved {state.saved_at})"
+        what = "tyre stiffness and sensor biases" if state.sensor_biases is not None else "tyre stiffness"
+        self.state_note = f"restored learned {what} from {path} (saved {state.saved_at})"
         log.info(self.state_note)
 
     def _stiffness_to_save(self):
+        """(stiffness, sensor biases or None) worth keeping, or None: the file is written only once the tyres
+        are learned (VALID), never with the prior as if it had been learned."""
         if not int(self.estimates[E_VALID]) & (V_CORNERING | V_CAMBER):
             return None  # nothing learned (or restored) yet: keep the previous file
-        return [float(v) for v in self.runner.estimator.learned_stiffness()]
+        est = self.runner.estimator
+        return [float(v) for v in est.learned_stiffness()], est.learned_sensor_biases()
 
     def _save_state(self, values, now: float) -> None:
         path = self.settings.runtime.state_file
         if not path or values is None:
             return
+        stiffness, biases = values
         try:
-            save_state(path, values, self.settings.config_hash)
+            save_state(path, stiffness, self.settings.config_hash, sensor_biases=biases)
             self.state_saves += 1
         except (OSError, ValueError, TypeError) as exc:
             self.rate_log.warn("state_save", f"cannot save state to {path}: {exc}", now)
