@@ -53,7 +53,7 @@ def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0):
     return Y
 
 
-def _run(bank, Y, start: float = 1.0, half_width: int | None = None):
+def _run(bank, Y, start: float = 1.0, half_width: int | None = None, learn: bool = True):
     s, tuning, grid, t = bank
     if half_width is not None:
         tuning = replace(tuning, running_half_width=half_width)
@@ -68,7 +68,7 @@ def _run(bank, Y, start: float = 1.0, half_width: int | None = None):
     trace = np.zeros((len(Y), 3))
     for k, y in enumerate(Y):
         tb.bank_step(
-            st, out, scratch, prm, y, U, y[4], True, True, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
+            st, out, scratch, prm, y, U, y[4], True, True, learn, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
             t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"],
         )  # fmt: skip
         trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS]
@@ -124,3 +124,14 @@ def test_running_window_walks_to_far_tyres(bank):
 def test_running_window_stays_inside_the_bank(centre, expected):
     assert tb._window_low(14, centre, 3) == expected
     assert tb._window_low(5, centre % 5, 3) == 0  # a bank no wider than the window runs whole
+
+
+def test_operating_tyres_follow_where_the_small_slip_stiffness_may_not_learn(bank):
+    """Beyond the linear range (learn off, track on: a deep corner) the published states run on the tyres the
+    data say the vehicle has now (the operating posterior), while the published small-slip stiffness keeps
+    what it learned (here: its prior, nominal)."""
+    trace, out = _run(bank, _ride(bank[0], 0.769, 30.0, excite=True), learn=False)
+    assert out[tb.OUT_OPERATING_SCALE] == pytest.approx(0.769, rel=0.05)
+    assert out[tb.OUT_SCALE] == pytest.approx(1.0, rel=0.02)
+    assert out[tb.OUT_LOG_SD] > 0.15  # and claims nothing
+    assert out[tb.OUT_LEARNING] == 0.0

@@ -189,7 +189,8 @@ def lateral_stage(
             and int(inputs[inp.OUT_REASONS]) == 0
             and st[ST_RUN_TIME] >= prm[P_CONVERGE_TIME]
         )
-        learn = observe and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL] and u >= prm[P_MIN_LEARNING_SPEED]
+        track = observe and u >= prm[P_MIN_LEARNING_SPEED]
+        learn = track and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL]
         tb.bank_step(
             bank,
             bank_out,
@@ -199,6 +200,7 @@ def lateral_stage(
             u,
             roll_prev,
             observe,
+            track,
             learn,
             v1(tables, tindex, t0 + T_GRID),
             v1(tables, tindex, t0 + T_SCALE),

@@ -12,8 +12,18 @@ and the posterior weight of h is w_h ~ exp(log L_h). Evidence is forgotten with 
 learned fades into the prior spread around the current estimate if nothing confirms it), and the prior
 is a Gaussian in log k around the start value (nominal, a persisted value, or a wrong start in tests).
 
-Outputs: the posterior mixture of the filters' states (what the lateral-dynamics filter publishes: the
-learned tyres are the ones the published torque and forces come from), the scale estimate
+Two posteriors share the filters and their innovations. The **small-slip** one takes evidence only in the
+tyres' linear range (`learn`): it is the published stiffness. The **operating** one takes it at any lean
+(`track`): near saturation the tyres act softer than their small-slip slope, and the published torque,
+forces and v_y must come from the tyres the vehicle runs on now (`radius_accel`'s long deep corners: torque
+error 17-23 % of the peak with the small-slip weights, 12-14 % with the operating ones).
+
+Only a window of 2 `running_half_width` + 1 filters around the small-slip posterior's most likely
+hypothesis runs (the cost is per running filter); one that joins the window starts from its neighbour's
+state and evidence.
+
+Outputs: the operating posterior's mixture of the filters' states (what the lateral-dynamics filter
+publishes: the learned tyres are the ones the published torque and forces come from), the scale estimate
 k = exp(sum w_h log k_h), its spread sd(log k), the weight and the windowed mean normalised innovation
 (NIS) of the most likely filter: small spread says the data single out one tyre; a NIS near its
 expected value says that tyre explains the data. Both together make the valid bit (the supervisor's).
@@ -53,7 +63,7 @@ BLOCK = kf.STATE_SIZE  # one fusion filter's state
 
 @njit(cache=True)
 def state_size(count: int) -> int:
-    return count * BLOCK + 4 * count + N_SCALARS
+    return count * BLOCK + 5 * count + N_SCALARS
 
 
 @njit(cache=True)
@@ -77,8 +87,13 @@ def _nis_fast0(count: int) -> int:
 
 
 @njit(cache=True)
-def _scalars0(count: int) -> int:
+def _logl_operating0(count: int) -> int:
     return count * BLOCK + 4 * count
+
+
+@njit(cache=True)
+def _scalars0(count: int) -> int:
+    return count * BLOCK + 5 * count
 
 
 SC_CENTRE = 0  # log k of the prior's centre
@@ -86,7 +101,7 @@ SC_INIT = 1  # 1 once the prior is set
 SC_MS_AY = 2  # windowed mean square of a_y
 SC_MS_R = 3  # windowed mean square of the yaw rate
 SC_LOW = 4  # first hypothesis of the running window
-SC_MAP = 5  # the most likely hypothesis of the last cycle (the next window's centre)
+SC_MAP = 5  # the small-slip posterior's most likely hypothesis of the last cycle (the window's centre)
 N_SCALARS = 6
 
 # ---- outputs ----
@@ -98,7 +113,8 @@ OUT_MAP_NIS = OUT_SCALE + 3  # its windowed mean NIS
 OUT_MAP_SCALE = OUT_SCALE + 4  # its k
 OUT_MAP_NIS_FAST = OUT_SCALE + 5  # its NIS over the short window
 OUT_LEARNING = OUT_SCALE + 6  # 1 if this cycle's evidence moved the estimate
-OUT_SIZE = OUT_SCALE + 7
+OUT_OPERATING_SCALE = OUT_SCALE + 7  # the operating posterior's scale (what the mixture runs on)
+OUT_SIZE = OUT_SCALE + 8
 
 # scratch needed by `bank_step`: innovation (N_Y), one filter's output (N_Z), correction forces (N_D)
 SCRATCH_SIZE = kf.N_Y + kf.N_Z + kf.N_D
@@ -134,6 +150,7 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float,
         g = (math.log(scale[h]) - lc) / sd
         st[_prior0(H) + h] = -0.5 * g * g
         st[_logl0(H) + h] = st[_prior0(H) + h]
+        st[_logl_operating0(H) + h] = st[_prior0(H) + h]
         st[_nis0(H) + h] = kf.N_Y  # its expected value: no claim either way
         st[_nis_fast0(H) + h] = kf.N_Y
     st[_scalars0(H) + SC_CENTRE] = lc
@@ -160,6 +177,7 @@ def _enter_window(st: np.ndarray, count: int, h: int, source: int) -> None:
     for k in range(BLOCK):
         st[h * BLOCK + k] = st[source * BLOCK + k]
     st[_logl0(count) + h] = st[_logl0(count) + source]
+    st[_logl_operating0(count) + h] = st[_logl_operating0(count) + source]
     st[_nis0(count) + h] = st[_nis0(count) + source]
     st[_nis_fast0(count) + h] = st[_nis_fast0(count) + source]
 
@@ -182,6 +200,39 @@ def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def _evidence(logl: np.ndarray, prior: np.ndarray, h: int, forget: float, take: bool, nis: float, ld: float) -> None:
+    """One cycle of hypothesis h's log-likelihood: forget towards the prior, and add this cycle's if `take`."""
+    logl[h] = prior[h] + forget * (logl[h] - prior[h])
+    if take:
+        logl[h] -= 0.5 * (nis + ld)
+
+
+@njit(cache=True)
+def _normalise(logl: np.ndarray, lo: int, hi: int, floor: float) -> tuple[float, float]:
+    """(best log-likelihood, sum of exp(logl - best)) over the window; every one kept within `floor` of the best
+    (a hypothesis can always come back: a road can change)."""
+    best = logl[lo]
+    for h in range(lo + 1, hi + 1):
+        if logl[h] > best:
+            best = logl[h]
+    total = 0.0
+    for h in range(lo, hi + 1):
+        if not logl[h] >= best - floor:  # also a NaN
+            logl[h] = best - floor
+        total += math.exp(logl[h] - best)
+    return best, total
+
+
+@njit(cache=True)
+def _most_likely(logl: np.ndarray, lo: int, hi: int) -> int:
+    best = lo
+    for h in range(lo + 1, hi + 1):
+        if logl[h] > logl[best]:
+            best = h
+    return best
+
+
+@njit(cache=True)
 def bank_step(
     st: np.ndarray,
     out: np.ndarray,
@@ -191,6 +242,7 @@ def bank_step(
     u: float,
     roll_init: float,
     observe: bool,
+    track: bool,
     learn: bool,
     grid: np.ndarray,
     scale: np.ndarray,
@@ -202,10 +254,12 @@ def bank_step(
     Sinv: np.ndarray,
     logdet: np.ndarray,
 ) -> None:
-    """One cycle: each filter's innovation, evidence, posterior, then every filter's step, mixed.
+    """One cycle: each filter's innovation, evidence, the two posteriors, then every running filter's step, mixed.
 
     observe: this cycle's measurements are sound (the innovations are checked for consistency);
-    learn: and they may also move the estimate (linear range of the tyres, see the module doc)."""
+    track: and they may move the operating tyres the published states are mixed from (at any lean: a tyre
+    near saturation is what the vehicle runs on);
+    learn: and the small-slip stiffness too (linear range of the tyres, see the module doc)."""
     H = int(prm[B_COUNT])
     G = grid.shape[0]
     if st[_scalars0(H) + SC_INIT] == 0.0:
@@ -215,13 +269,14 @@ def bank_step(
     zh = scratch[kf.N_Y : kf.N_Y + kf.N_Z]
     d = scratch[kf.N_Y + kf.N_Z : kf.N_Y + kf.N_Z + kf.N_D]
     logl = st[_logl0(H) : _logl0(H) + H]
+    logl_op = st[_logl_operating0(H) : _logl_operating0(H) + H]
     nisw = st[_nis0(H) : _nis0(H) + H]
     nisf = st[_nis_fast0(H) : _nis_fast0(H) + H]
     prior = st[_prior0(H) : _prior0(H) + H]
-    forget = prm[B_LEARN_FORGET] if learn else prm[B_IDLE_FORGET]
     alpha = prm[B_NIS_ALPHA]
 
-    # 0. the running window follows the most likely hypothesis; the ones that join it start from their neighbour
+    # 0. the running window follows the small-slip posterior's most likely hypothesis (the operating tyres lie
+    # within its reach: +-3 steps is x0.66 .. x1.52); the hypotheses that join it start from their neighbour
     sc = _scalars0(H)
     half = int(prm[B_HALF_WIDTH])
     old_lo = int(st[sc + SC_LOW])
@@ -243,55 +298,47 @@ def bank_step(
         st[sc + SC_MS_AY] += a * (y[3] * y[3] - st[sc + SC_MS_AY])
         st[sc + SC_MS_R] += a * (y[1] * y[1] - st[sc + SC_MS_R])
     excited = st[sc + SC_MS_AY] > prm[B_MIN_AY] ** 2 or st[sc + SC_MS_R] > prm[B_MIN_YAW_RATE] ** 2
-    learn = learn and observe and excited
+    track = track and observe and excited
+    learn = learn and track
+    forget = prm[B_LEARN_FORGET] if learn else prm[B_IDLE_FORGET]
+    forget_op = prm[B_LEARN_FORGET] if track else prm[B_IDLE_FORGET]
     for h in range(lo, hi + 1):
         z = st[h * BLOCK : h * BLOCK + kf.N_Z]
-        if observe and st[h * BLOCK + kf.INIT] != 0.0:
+        nis = 0.0
+        ld = 0.0
+        measured = observe and st[h * BLOCK + kf.INIT] != 0.0
+        if measured:
             j = h * G + i
             for r in range(kf.N_Y):
                 acc = y[r]
                 for c in range(kf.N_Z):
                     acc -= C[r, c] * z[c]
                 e[r] = acc
-            nis = 0.0
             for r in range(kf.N_Y):
                 for c in range(kf.N_Y):
                     nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
             nisw[h] += alpha * (nis - nisw[h])
             nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
-            if learn:
-                ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
-                logl[h] = prior[h] + forget * (logl[h] - prior[h]) - 0.5 * (nis + ld)
-            else:
-                logl[h] = prior[h] + forget * (logl[h] - prior[h])
-        else:
-            logl[h] = prior[h] + forget * (logl[h] - prior[h])
+            ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
+        _evidence(logl, prior, h, forget, measured and learn, nis, ld)
+        _evidence(logl_op, prior, h, forget_op, measured and track, nis, ld)
 
-    # 2. posterior over the window (the floor keeps every hypothesis within reach of the best: a road can change)
-    best = logl[lo]
-    for h in range(lo + 1, hi + 1):
-        if logl[h] > best:
-            best = logl[h]
-    total = 0.0
-    for h in range(lo, hi + 1):
-        if not logl[h] >= best - prm[B_FLOOR]:  # also a NaN
-            logl[h] = best - prm[B_FLOOR]
-        total += math.exp(logl[h] - best)
+    # 2. the posteriors over the window: the small-slip one (published stiffness, its spread and consistency)
+    # and the operating one (the weights of the published states)
+    best, total = _normalise(logl, lo, hi, prm[B_FLOOR])
+    best_op, total_op = _normalise(logl_op, lo, hi, prm[B_FLOOR])
     mean_log = 0.0
-    map_h = lo
-    map_w = 0.0
+    mean_log_op = 0.0
     for h in range(lo, hi + 1):
-        wh = math.exp(logl[h] - best) / total
-        mean_log += wh * math.log(scale[h])
-        if wh > map_w:
-            map_w = wh
-            map_h = h
+        mean_log += math.exp(logl[h] - best) / total * math.log(scale[h])
+        mean_log_op += math.exp(logl_op[h] - best_op) / total_op * math.log(scale[h])
     var_log = 0.0
     for h in range(lo, hi + 1):
         dl = math.log(scale[h]) - mean_log
         var_log += math.exp(logl[h] - best) / total * dl * dl
+    map_h = _most_likely(logl, lo, hi)
 
-    # 3. every filter's step; the published states are the posterior mixture of the corrected ones
+    # 3. every running filter's step; the published states are the operating posterior's mixture
     for k in range(kf.N_Z):
         out[OUT_Z + k] = 0.0
     for h in range(lo, hi + 1):
@@ -310,14 +357,15 @@ def bank_step(
             nl,
             d,
         )
-        wh = math.exp(logl[h] - best) / total
+        wh = math.exp(logl_op[h] - best_op) / total_op
         for k in range(kf.N_Z):
             out[OUT_Z + k] += wh * zh[k]
     out[OUT_SCALE] = math.exp(mean_log)
     out[OUT_LOG_SD] = math.sqrt(var_log)
-    out[OUT_MAP_WEIGHT] = map_w
+    out[OUT_MAP_WEIGHT] = math.exp(logl[map_h] - best) / total
     out[OUT_MAP_NIS] = nisw[map_h]
     out[OUT_MAP_SCALE] = scale[map_h]
     out[OUT_MAP_NIS_FAST] = nisf[map_h]
     out[OUT_LEARNING] = 1.0 if learn else 0.0
+    out[OUT_OPERATING_SCALE] = math.exp(mean_log_op)
     st[sc + SC_MAP] = map_h
