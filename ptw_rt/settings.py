@@ -69,7 +69,9 @@ TYRE_BANK_SCHEMA = Section(
         "restored_sd": (Number("", gt=0), 0.15),
         "consistency_window": (Number("s", gt=0), 2.0),
         "fast_consistency_window": (Number("s", gt=0), 0.1),
-        "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.3),
+        # the small-slip stiffness learns below this lean: a road of mu 0.5 then uses <= 30 % of its grip, where a
+        # Magic-Formula tyre's secant slope is within 3 % of its small-slip one (docs/estimator.md, "Tyres")
+        "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.15),
         "valid_log_sd": (Number("", gt=0), 0.05),
         "valid_max_nis": (Number("", gt=0), 6.0),
         "valid_max_nis_fast": (Number("", gt=0), 12.0),

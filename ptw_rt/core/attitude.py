@@ -82,6 +82,7 @@ STATE = Layout(
     mean_pitch=1,  # ... of the rotation-axis constraint's
     mean_course=1,  # ... of the GPS course's (updated per fix)
     inconsistent_for=1,  # s the monitor has still to hold its alarm
+    reacquired=1,  # 1 once this alarm has reopened the biases (once per alarm)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -98,6 +99,7 @@ STATE = Layout(
     ST_MEAN_PITCH,
     ST_MEAN_COURSE,
     ST_INCONSISTENT_FOR,
+    ST_REACQUIRED,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -704,13 +706,16 @@ def consistency_monitor(st: np.ndarray, prm: np.ndarray, out: np.ndarray, riding
     stat = max(max(abs(st[ST_MEAN_LATERAL]), abs(st[ST_MEAN_PITCH])) / white_sd, abs(st[ST_MEAN_COURSE]) / white_sd_fix)
     limit = prm[A_CONSISTENCY_LIMIT]
     if stat > limit:
-        if st[ST_INCONSISTENT_FOR] <= 0.0 and riding:
-            _reacquire_biases(st, prm)
         st[ST_INCONSISTENT_FOR] = prm[A_CONSISTENCY_HOLD] + dt
     elif stat > 0.5 * limit and st[ST_INCONSISTENT_FOR] > 0.0:
         st[ST_INCONSISTENT_FOR] = prm[A_CONSISTENCY_HOLD] + dt
     elif st[ST_INCONSISTENT_FOR] > 0.0:
         st[ST_INCONSISTENT_FOR] -= dt
+    if st[ST_INCONSISTENT_FOR] <= 0.0:
+        st[ST_REACQUIRED] = 0.0
+    elif riding and st[ST_REACQUIRED] == 0.0:  # an alarm raised at a stop re-learns once riding
+        _reacquire_biases(st, prm)
+        st[ST_REACQUIRED] = 1.0
     out[OUT_CONSISTENCY] = stat
     out[OUT_INCONSISTENT] = 1.0 if st[ST_INCONSISTENT_FOR] > 0.0 else 0.0
 
