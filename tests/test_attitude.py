@@ -161,3 +161,31 @@ def test_standstill_reads_gyro_biases():
     assert o[att.OUT_BP] == pytest.approx(0.004, abs=3e-4)
     assert o[att.OUT_BQ] == pytest.approx(-0.003, abs=3e-4)
     assert o[att.OUT_BR] == pytest.approx(0.002, abs=3e-4)
+
+
+def test_a_heading_beyond_the_gate_is_taken_from_the_course_again():
+    """A heading that drifted beyond the innovation gate (a long GPS outage on a biased yaw gyro) would refuse
+    every later fix; after COURSE_REINIT_FIXES refused fixes the next one sets it."""
+    t = np.arange(0, 20, DT)
+    u = np.full_like(t, 20.0)
+    phi = np.zeros_like(t)
+    r = np.zeros_like(t)
+    settings = load_settings(DEFAULT_CONFIG)
+    prm = att.attitude_params(DT, G, 0.5, 0.0, settings.estimator.attitude, 0.1)
+    p, q, rb, fy, fz, psi = _ride(phi, r, u, 0.5, 0.0, 1)
+    st = att.new_state()
+    out = np.zeros(att.OUT_SIZE)
+    heading_error = np.zeros(len(t))
+    for k in range(len(t)):
+        if k == 500:
+            st[att.ST_X + att.X_PSI] += 0.5  # 29 deg off, far beyond the gate
+        course_new = k % 10 == 4 and k >= 10
+        course = psi[k - 10] if course_new else 0.0
+        att.attitude_step(
+            st, out, prm, p[k], q[k], rb[k], fy[k], fz[k], u[k], 0.1, True, True, course, course_new, False
+        )
+        heading_error[k] = (out[att.OUT_HEADING] - psi[k] + math.pi) % (2 * math.pi) - math.pi
+    assert abs(heading_error[499]) < math.radians(1.0)
+    assert abs(heading_error[520]) > math.radians(20.0)  # refused at first: one bad fix is not believed
+    back = np.flatnonzero(np.abs(heading_error) < math.radians(1.0))
+    assert back[back > 500][0] * DT <= 5.0 + 1.2  # within COURSE_REINIT_FIXES fixes and one more

@@ -83,6 +83,7 @@ STATE = Layout(
     mean_course=1,  # ... of the GPS course's (updated per fix)
     inconsistent_for=1,  # s the monitor has still to hold its alarm
     reacquired=1,  # 1 once this alarm has reopened the biases (once per alarm)
+    course_rejected=1,  # consecutive GPS course fixes gated out
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -100,6 +101,7 @@ STATE = Layout(
     ST_MEAN_COURSE,
     ST_INCONSISTENT_FOR,
     ST_REACQUIRED,
+    ST_COURSE_REJECTED,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -109,6 +111,10 @@ UNMEASURED_RATE_SD = 0.5
 # running mean in the consistency monitor shorter, in fixes, and so less sensitive, never more)
 GPS_FIX_INTERVAL = 0.1
 NU_CLIP = 2.0  # standard deviations: bound of each whitened innovation in the consistency monitor's means
+# consecutive GPS course fixes gated out after which the heading is taken from the course again: a heading
+# that drifted beyond the gate (a long GPS outage on a biased yaw gyro) would otherwise refuse every fix
+# for the rest of the ride, and with them the yaw-gyro bias's only reference while riding
+COURSE_REINIT_FIXES = 10
 
 # ---- parameters (float64 vector: `attitude_params` builds the filter's from the config, `build_params` all) ----
 PARAMS = Layout(
@@ -496,11 +502,18 @@ def attitude_step(
                 P[i, X_PSI] = 0.0
             P[X_PSI, X_PSI] = prm[A_R_COURSE] ** 2
             st[ST_PSI_INIT] = 1.0
+            st[ST_COURSE_REJECTED] = 0.0
         else:
             _clear_h(H)
             H[X_PSI] = 1.0
             H[X_VY] = 1.0 / u
-            _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2, gate)
+            if _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2, gate):
+                st[ST_COURSE_REJECTED] = 0.0
+            else:
+                st[ST_COURSE_REJECTED] += 1.0
+                if st[ST_COURSE_REJECTED] >= COURSE_REINIT_FIXES:
+                    st[ST_PSI_INIT] = 0.0  # the next fix sets the heading
+                    st[ST_COURSE_REJECTED] = 0.0
             nu_course = st[ST_NU]
             course_fix = 1.0
 
