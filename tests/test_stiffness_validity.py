@@ -44,3 +44,16 @@ def test_stiffness_flagged_valid_is_within_20_percent(scenario, scale, seed):
     for slot, name in TRUTH.items():
         err = np.abs(E[valid, slot] / truth[name][valid] - 1.0)
         assert err.size == 0 or err.max() <= 0.20, f"{name}: {100 * err.max():.1f} % off while VALID"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("start", [0.7, 1.3])
+def test_a_wrong_start_converges_on_the_nonlinear_plant(start):
+    """From the nominal tyres x0.7 or x1.3 on the nominal plant (saturating tyres, real sensors) the learned
+    stiffness is within 10 % of the truth, to stay, after at most 30 s of cornering (issue #12's target)."""
+    from ptw_rt.eval.matrix import learning_times
+
+    ev = evaluate_ride(simulate("handling_40_120"), initial_stiffness_scale=(start, start))
+    assert ev.result["initial_stiffness_scale"]["applied"]
+    for name, times in learning_times(ev, 0.0).items():
+        assert times["cornering_s"] is not None and times["cornering_s"] <= 30.0, (name, times)
