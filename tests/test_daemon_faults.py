@@ -556,6 +556,18 @@ def test_sighup_to_the_process_as_systemd_sends_it(notify, tmp_path):
 # ---------------------------------------------------------------------- restart with learned stiffness
 
 
+def _learns(daemon, learned):
+    """An on_cycle hook doing what the learner does once it trusts its values: set them, flag them valid."""
+
+    def learn(now, e):
+        if daemon.cycles == 20:
+            daemon.runner.estimator.restore_stiffness(learned)
+        if daemon.cycles >= 20:
+            e[E_VALID] = int(e[E_VALID]) | V_CORNERING | V_CAMBER
+
+    return learn
+
+
 def test_restart_with_learned_stiffness_through_the_state_file(tmp_path):
     state = tmp_path / "state.json"
     channel = _channel()
@@ -564,13 +576,7 @@ def test_restart_with_learned_stiffness_through_the_state_file(tmp_path):
     # the tyre bank learns one scale for all four stiffnesses (docs/estimator.md, "Tyres"): a learned set is one
     learned = design.ad_theta_nominal * 1.2
 
-    def learn(now, e):  # what the learner does once it trusts its values: set them and flag them valid
-        if first.cycles == 20:
-            first.runner.estimator.restore_stiffness(learned)
-        if first.cycles >= 20:
-            e[E_VALID] = int(e[E_VALID]) | V_CORNERING | V_CAMBER
-
-    first.on_cycle = learn
+    first.on_cycle = _learns(first, learned)
     _run(first, 0.6)
     saved, reason = load_state(state, first.settings.config_hash)
     assert saved is not None, reason
@@ -596,13 +602,7 @@ def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
     biases = (0.004, -0.002, 0.003, -0.05)
     first.runner.estimator.learned_sensor_biases = lambda: biases  # what a ride would have taught it
 
-    def learn(now, e):
-        if first.cycles == 20:
-            first.runner.estimator.restore_stiffness(learned)
-        if first.cycles >= 20:
-            e[E_VALID] = int(e[E_VALID]) | V_CORNERING | V_CAMBER
-
-    first.on_cycle = learn
+    first.on_cycle = _learns(first, learned)
     _run(first, 0.5)
     saved, reason = load_state(state, first.settings.config_hash)
     assert saved is not None, reason
