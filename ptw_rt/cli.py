@@ -24,6 +24,8 @@ EXTRA_OF_MODULE = {
     "matplotlib": "plot",
     "pynmea2": "gnss",
     "asammdf": "mf4",
+    "dask": "fleet",
+    "distributed": "fleet",
 }
 
 
@@ -242,7 +244,15 @@ def build_parser() -> argparse.ArgumentParser:
         description="Input format from the extension and the content; output format from --out's extension "
         "(.log or none: candump -L; .asc, .blf, .trc, .csv, .mf4). Exit code 2: not a CAN log, empty, unreadable.",
     )
-    p.add_argument("logs", nargs="+", type=Path, help="CAN logs or directories of them")
+    p.add_argument("logs", nargs="*", type=Path, help="CAN logs or directories of them (searched recursively)")
+    p.add_argument("--list", type=Path, default=None, metavar="FILE", help="a file naming one log per line")
+    p.add_argument(
+        "--dask",
+        default=None,
+        metavar="ADDRESS",
+        help="run the logs on a Dask cluster (tcp://scheduler:8786), or 'local' for a LocalCluster of --jobs "
+        "workers (the 'fleet' extra)",
+    )
     p.add_argument(
         "--out", type=Path, required=True, help="output log (one input; format from its extension) or directory"
     )

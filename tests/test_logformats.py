@@ -323,4 +323,4 @@ def test_directory_replay_takes_every_format_and_lists_failures(ride, tmp_path):
     summaries = [json.loads(line) for line in proc.stdout.splitlines()]
     assert [s.get("error") for s in summaries] == [junk, None, None, None]  # job order: junk.asc sorts first
     outs = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert outs == ["r_blf.blf", "r_candump.log", "r_csv.csv"]
+    assert outs == ["fleet.csv", "fleet.parquet", "r_blf.blf", "r_candump.log", "r_csv.csv"]  # + the fleet summary

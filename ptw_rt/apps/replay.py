@@ -22,14 +22,28 @@ import stat
 import sys
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
 from ptw_rt._numba_cache import announce_compile
-from ptw_rt.core.layout import E_MODE, ESTIMATE_NAMES, MODE_NAMES
+from ptw_rt.apps import fleet
+from ptw_rt.core.layout import (
+    E_C_ALPHA_FRONT,
+    E_C_ALPHA_REAR,
+    E_C_GAMMA_FRONT,
+    E_C_GAMMA_REAR,
+    E_MODE,
+    E_REASONS,
+    E_TYRE_SCALE,
+    E_VALID,
+    ESTIMATE_NAMES,
+    MODE_NAMES,
+    REASON_NAMES,
+    V_CAMBER,
+    V_CORNERING,
+)
 from ptw_rt.edge.cycle import DEFAULT_MAX_GAP_S, CycleRunner, DriveStats, SegmentBreak, build_runner, drive_log
 from ptw_rt.errors import EXIT_OK, EXIT_OUTPUT, EXIT_PARTIAL, UserFacingError
 from ptw_rt.io.logformats import (
@@ -46,11 +60,14 @@ from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
 from ptw_rt.untrusted import file_kind
 
-__all__ = ["replay_log", "run_replay"]
+__all__ = ["replay_job", "replay_log", "run_replay"]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_CHANNEL = "vcan0"
+# REASON_* bits that say an input was faulty this cycle: a fleet row's sensor_fault_cycles counts their cycles
+SENSOR_FAULT_BITS = sum(1 << REASON_NAMES.index(name) for name in fleet.SENSOR_FAULT_REASONS)
+MAX_TREE_DEPTH = 32  # directory levels searched for logs below a directory given on the command line
 
 
 class _Feed:
@@ -227,6 +244,8 @@ def replay_log(
     feed = _Feed(first, frames, stats, str(in_path), max_gap, tick)
     drive = DriveStats()
     mode_counts = [0] * len(MODE_NAMES)
+    sensor_fault_cycles = 0
+    last = np.zeros(len(ESTIMATE_NAMES))
     frames_out = 0
     t_first = first[0]
     t_last = t_first
@@ -253,10 +272,13 @@ def replay_log(
             frames_out += len(out)
 
         def on_cycle(now: float, estimates: np.ndarray) -> None:
-            nonlocal t_last
+            nonlocal t_last, sensor_fault_cycles, last
             m = int(estimates[E_MODE])
             if 0 <= m < len(mode_counts):
                 mode_counts[m] += 1
+            if int(estimates[E_REASONS]) & SENSOR_FAULT_BITS:
+                sensor_fault_cycles += 1
+            last = estimates
             if csv is not None:
                 try:
                     csv.write(_csv_row(now, estimates))
@@ -318,20 +340,37 @@ def replay_log(
         "wall_s": round(wall, 3),
         "x_real_time": round(duration / wall, 1) if wall > 0 else None,
         "modes": {MODE_NAMES[i]: n for i, n in enumerate(mode_counts) if n},
+        "sensor_fault_cycles": sensor_fault_cycles,
+        "overruns": 0,  # replay is clocked by the log: there is no deadline to miss
+        "final": _final_tyres(last),
         "inputs": runner.tracker.summary(),
+    }
+
+
+def _final_tyres(estimates: np.ndarray) -> dict[str, Any]:
+    """What the log's ride ended with: the learned stiffness, its scale and whether it was VALID."""
+    return {
+        "tyre_scale": float(estimates[E_TYRE_SCALE]),
+        "c_alpha_front": float(estimates[E_C_ALPHA_FRONT]),
+        "c_gamma_front": float(estimates[E_C_GAMMA_FRONT]),
+        "c_alpha_rear": float(estimates[E_C_ALPHA_REAR]),
+        "c_gamma_rear": float(estimates[E_C_GAMMA_REAR]),
+        "stiffness_valid": bool(int(estimates[E_VALID]) & (V_CORNERING | V_CAMBER)),
     }
 
 
 # ---------------------------------------------------------------------- CLI
 
 
-def _collect_logs(paths: list[Path]) -> tuple[list[Path], bool]:
-    """Input logs (directories expanded to their CAN logs, sorted) and whether any directory was given.
+def _collect_logs(paths: list[Path], exclude: Path | None = None) -> tuple[list[tuple[Path, Path]], bool]:
+    """Input logs as (path, name of its output relative to --out) and whether any directory was given.
 
-    In a directory every file with a log extension (``ptw_rt.io.logformats.EXTENSIONS``) is a log (one that is
-    not fails on its own), except ``.csv`` files, which are taken only when they are python-can CAN CSV: a
-    ride's truth and estimates CSV files sit beside its log."""
-    files: list[Path] = []
+    A directory is searched recursively (at most MAX_TREE_DEPTH levels, symbolic links to directories not
+    followed, `exclude` -- the output directory -- skipped): every file with a log extension
+    (``ptw_rt.io.logformats.EXTENSIONS``) is a log (one that is not fails on its own), except ``.csv`` files,
+    which are taken only when they are python-can CAN CSV: a ride's truth and estimates CSV files sit beside its
+    log. Its outputs mirror the tree below it; a file given directly keeps its name."""
+    files: list[tuple[Path, Path]] = []
     any_dir = False
     for p in paths:
         try:
@@ -342,19 +381,38 @@ def _collect_logs(paths: list[Path]) -> tuple[list[Path], bool]:
             raise UserFacingError(f"cannot read CAN log {p}: {exc.strerror or exc}") from None
         if stat.S_ISDIR(st.st_mode):
             any_dir = True
-            try:
-                found = sorted(q for q in p.iterdir() if q.suffix.lower() in EXTENSIONS and q.is_file())
-            except OSError as exc:
-                raise UserFacingError(f"cannot list directory {p}: {exc.strerror or exc}") from None
-            found = [q for q in found if q.suffix.lower() != ".csv" or _is_can_csv(q)]
+            found = [(q, q.relative_to(p)) for q in _logs_below(p, exclude)]
             if not found:
                 raise UserFacingError(f"no CAN logs in directory {p} ({', '.join(EXTENSIONS)})")
             files.extend(found)
         elif stat.S_ISREG(st.st_mode):
-            files.append(p)
+            files.append((p, Path(p.name)))
         else:
             raise UserFacingError(f"{p}: CAN log is {file_kind(st.st_mode)}, not a regular file")
     return files, any_dir
+
+
+def _logs_below(top: Path, exclude: Path | None) -> list[Path]:
+    skip = None if exclude is None else exclude.resolve()
+    found: list[Path] = []
+    try:
+        for root, dirs, names in os.walk(top, onerror=_raise_walk_error):
+            here = Path(root)
+            depth = len(here.relative_to(top).parts)
+            dirs[:] = sorted(
+                d for d in dirs if depth < MAX_TREE_DEPTH and (skip is None or (here / d).resolve() != skip)
+            )
+            for name in sorted(names):
+                q = here / name
+                if q.suffix.lower() in EXTENSIONS and q.is_file() and (q.suffix.lower() != ".csv" or _is_can_csv(q)):
+                    found.append(q)
+    except OSError as exc:
+        raise UserFacingError(f"cannot list directory {exc.filename or top}: {exc.strerror or exc}") from None
+    return found
+
+
+def _raise_walk_error(exc: OSError) -> None:
+    raise exc
 
 
 def _is_can_csv(path: Path) -> bool:
@@ -365,28 +423,36 @@ def _is_can_csv(path: Path) -> bool:
 
 
 def _plan(args) -> list[tuple[Path, Path, Path | None]]:
-    files, any_dir = _collect_logs(list(args.logs))
-    if len(files) == 1 and not any_dir:
+    inputs = list(args.logs)
+    list_file = getattr(args, "list", None)
+    if list_file is not None:
+        inputs.extend(fleet.read_list_file(list_file))
+    if not inputs:
+        raise UserFacingError("no input log: give logs, directories or --list FILE")
+    files, any_dir = _collect_logs(inputs, exclude=args.out)
+    if len(files) == 1 and not any_dir and list_file is None:
         if args.out.is_dir():
             raise ReplayOutputError(f"--out {args.out} is a directory; with one input log --out names the output file")
         if args.csv is not None and args.csv.is_dir():
             raise ReplayOutputError(f"--csv {args.csv} is a directory; with one input log --csv names a file")
-        detect_format(files[0])  # not a CAN log, empty: one line now, before the estimator is compiled
-        jobs = [(files[0], args.out, args.csv)]
+        detect_format(files[0][0])  # not a CAN log, empty: one line now, before the estimator is compiled
+        jobs = [(files[0][0], args.out, args.csv)]
     else:
         if args.out.exists() and not args.out.is_dir():
             raise ReplayOutputError(f"--out {args.out} must be a directory when replaying several logs")
         if args.csv is not None and args.csv.exists() and not args.csv.is_dir():
             raise ReplayOutputError(f"--csv {args.csv} must be a directory when replaying several logs")
-        names = [f.name for f in files]
+        names = [str(rel) for _, rel in files]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise UserFacingError(f"several input logs are named {', '.join(dup)}: their outputs would collide")
-        stems = [f.stem for f in files]
+        stems = [str(rel.with_suffix("")) for _, rel in files]
         dup = sorted({n for n in stems if stems.count(n) > 1})
         if dup and args.csv is not None:
             raise UserFacingError(f"several input logs are named {', '.join(dup)}.*: their --csv outputs would collide")
-        jobs = [(f, args.out / f.name, None if args.csv is None else args.csv / (f.stem + ".csv")) for f in files]
+        jobs = [
+            (f, args.out / rel, None if args.csv is None else args.csv / rel.with_suffix(".csv")) for f, rel in files
+        ]
     for src, out, csv in jobs:
         writer_format(out)  # an unknown extension: one line now
         for target in (out, csv):
@@ -427,11 +493,15 @@ def _failure(in_path: Path, exc: BaseException) -> dict[str, Any]:
     return {"log": str(in_path), "error": " ".join(text.split())[:500]}
 
 
-def _job(
+def replay_job(
     in_path: Path, out: Path, csv: Path | None, config: Path, design_file: Path | None, max_gap: float
 ) -> dict[str, Any]:
-    """One log of a parallel run, in a worker process: never raises (a bad log must not stop the others)."""
+    """One log of a run of many, in a worker process or a Dask task: never raises (a bad log must not stop the
+    others); the output's directory is made here (outputs mirror the input tree)."""
     try:
+        for target in (out, csv):
+            if target is not None:
+                target.parent.mkdir(parents=True, exist_ok=True)
         return replay_log(in_path, out, csv, config, design_file, max_gap=max_gap)
     except Exception as exc:
         return _failure(in_path, exc)
@@ -477,25 +547,38 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
     else:
         workers = max(1, min(args.jobs or os.cpu_count() or 1, len(jobs)))
         bar = Progress(len(jobs), label="replay", stream=err) if progress else None
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {
-                pool.submit(_job, src, dst, csv, config, design_file, max_gap): i
-                for i, (src, dst, csv) in enumerate(jobs)
-            }
-            for fut in as_completed(futures):
-                i = futures[fut]
-                try:
-                    results[i] = fut.result()
-                except Exception as exc:  # the worker itself died (killed, out of memory): this log failed
-                    results[i] = _failure(jobs[i][0], exc)
-                if "error" in results[i]:
-                    failures += 1
-                    message = results[i]["error"]
-                    where = str(jobs[i][0])
-                    line = message if message.startswith(where) else f"{where}: {message}"
-                    err.write(("\n" if bar is not None and bar.tty else "") + f"error: {line}\n")
-                if bar is not None:
-                    bar.step(jobs[i][0].name)
+
+        def done(i: int, result: dict[str, Any]) -> None:
+            nonlocal failures
+            results[i] = result
+            if "error" in result:
+                failures += 1
+                message = result["error"]
+                where = str(jobs[i][0])
+                line = message if message.startswith(where) else f"{where}: {message}"
+                err.write(("\n" if bar is not None and bar.tty else "") + f"error: {line}\n")
+            if bar is not None:
+                bar.step(jobs[i][0].name)
+
+        fleet.run_jobs(
+            replay_job,
+            [(src, dst, csv, config, design_file, max_gap) for src, dst, csv in jobs],
+            workers=workers,
+            dask=getattr(args, "dask", None),
+            on_done=done,
+            failure=lambda job, exc: _failure(job[0], exc),
+        )
+        ordered = [results[i] for i in range(len(jobs))]
+        try:
+            written = fleet.write_fleet_summary(fleet.fleet_rows(ordered), args.out)
+        except OSError as exc:
+            raise _output_error(args.out / "fleet.csv", exc) from None
+        ok = [r for r in ordered if "error" not in r]
+        hours = sum(r["log_duration_s"] for r in ok) / 3600.0
+        err.write(
+            f"fleet: {len(ok)} of {len(jobs)} logs replayed, {hours:.2f} h of riding, "
+            f"summary {', '.join(str(p) for p in written)}\n"
+        )
     for i in sorted(results):  # job order, not completion order: stable output
         out.write(json.dumps(_short(results[i])) + "\n")
     out.flush()

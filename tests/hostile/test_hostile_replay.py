@@ -217,7 +217,7 @@ def test_worker_exception_becomes_the_logs_error(monkeypatch, tmp_path):
         raise RuntimeError("simulated bug\nsecond line")
 
     monkeypatch.setattr(replay_app, "replay_log", boom)
-    result = replay_app._job(tmp_path / "a.log", tmp_path / "o.log", None, DEFAULT_CONFIG, None, 5.0)
+    result = replay_app.replay_job(tmp_path / "a.log", tmp_path / "o.log", None, DEFAULT_CONFIG, None, 5.0)
     expected = "internal error: RuntimeError: simulated bug second line"  # one line
     assert result == {"log": str(tmp_path / "a.log"), "error": expected}
 

@@ -1,0 +1,192 @@
+"""Many logs at once: where they come from (directory trees, list files), where they run (local processes or a
+Dask cluster), and the fleet summary (one row per log) written at the end.
+
+The work per log is ``ptw_rt.apps.replay.replay_job``: the same function in a local process pool and in a Dask
+task, so a log replays to the same bytes wherever it runs. A log that fails is a row with its reason and never
+stops the others.
+
+Dask (the ``fleet`` extra, ``dask[distributed]``) is imported only when ``--dask`` is given:
+``--dask tcp://scheduler:8786`` uses an existing cluster (its workers need ptw-rt installed and the logs and
+output directory at the same paths, a shared file system), ``--dask local`` starts a ``LocalCluster`` of
+``--jobs`` single-threaded worker processes on this machine.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+from ptw_rt.core.layout import MODE_NAMES
+from ptw_rt.errors import UserFacingError
+from ptw_rt.untrusted import UntrustedFileError, decode_utf8, read_bounded
+
+__all__ = ["FLEET_COLUMNS", "fleet_rows", "read_list_file", "run_jobs", "write_fleet_summary"]
+
+MAX_LIST_BYTES = 16 * 1024 * 1024  # a list file of ~100 000 paths
+MAX_LIST_ENTRIES = 200_000
+SENSOR_FAULT_REASONS = ("sensor_stale", "out_of_range", "decode_errors", "counter_jumps")
+
+FLEET_COLUMNS = (
+    "log",
+    "status",
+    "error",
+    "duration_s",
+    "cycles",
+    "segments",
+    *(f"share_{name.lower()}" for name in MODE_NAMES),
+    "sensor_fault_cycles",
+    "overruns",
+    "tyre_scale",
+    "c_alpha_front",
+    "c_gamma_front",
+    "c_alpha_rear",
+    "c_gamma_rear",
+    "stiffness_valid",
+    "wall_s",
+)
+
+
+class ListFileError(UserFacingError):
+    pass
+
+
+def read_list_file(path: Path) -> list[Path]:
+    """The logs named by a list file: one path per line, blank lines and ``#`` comments skipped, a relative path
+    relative to the list file's directory. Untrusted: a regular file of at most MAX_LIST_BYTES, UTF-8, at most
+    MAX_LIST_ENTRIES paths, no NUL in a path."""
+    try:
+        raw = read_bounded(path, max_bytes=MAX_LIST_BYTES, what="list file", error=ListFileError)
+        text = decode_utf8(raw, path, what="list file", error=ListFileError)
+    except UntrustedFileError as exc:  # pragma: no cover - read_bounded raises the given error type
+        raise ListFileError(str(exc)) from None
+    base = path.parent
+    logs: list[Path] = []
+    for number, line in enumerate(text.splitlines(), 1):
+        entry = line.strip()
+        if not entry or entry.startswith("#"):
+            continue
+        if "\0" in entry:
+            raise ListFileError(f"{path}:{number}: a path with a NUL character")
+        logs.append(Path(entry) if Path(entry).is_absolute() else base / entry)
+        if len(logs) > MAX_LIST_ENTRIES:
+            raise ListFileError(f"{path}: more than {MAX_LIST_ENTRIES} logs")
+    if not logs:
+        raise ListFileError(f"{path}: list file names no log")
+    return logs
+
+
+def _dask_client(address: str, workers: int):
+    """A dask.distributed Client on `address` ("local": a LocalCluster of `workers` processes)."""
+    from dask.distributed import Client, LocalCluster  # the `fleet` extra; ModuleNotFoundError -> one line
+
+    if address == "local":
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
+        )
+        return Client(cluster), cluster
+    try:
+        return Client(address, timeout="10s"), None
+    except (OSError, TimeoutError) as exc:
+        raise UserFacingError(f"--dask {address}: cannot reach the Dask scheduler ({exc})") from None
+
+
+def run_jobs(
+    job: Callable[..., dict[str, Any]],
+    jobs: Sequence[tuple],
+    *,
+    workers: int,
+    dask: str | None,
+    on_done: Callable[[int, dict[str, Any]], None],
+    failure: Callable[[tuple, BaseException], dict[str, Any]],
+) -> None:
+    """Run ``job(*args)`` for every args tuple of ``jobs`` on `workers` local processes, or on the Dask cluster
+    ``dask``; ``on_done(index, result)`` as each finishes. A job whose worker dies gives ``failure(args, exc)``."""
+    for index, fut_result in _completed(job, jobs, workers=workers, dask=dask):
+        try:
+            result = fut_result()
+        except Exception as exc:  # the worker itself died (killed, out of memory, lost): this log failed
+            result = failure(jobs[index], exc)
+        on_done(index, result)
+
+
+def _completed(job, jobs, *, workers: int, dask: str | None) -> Iterator[tuple[int, Callable[[], Any]]]:
+    if dask is None:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = {pool.submit(job, *args): i for i, args in enumerate(jobs)}
+            for fut in as_completed(futures):
+                yield futures[fut], fut.result
+        return
+    from dask.distributed import as_completed as dask_completed
+
+    client, cluster = _dask_client(dask, workers)
+    try:
+        # pure=False: two logs with the same arguments are still two tasks; one task per log
+        futures = {client.submit(job, *args, pure=False): i for i, args in enumerate(jobs)}
+        for fut in dask_completed(list(futures)):
+            yield futures[fut], fut.result
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def fleet_rows(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per log (FLEET_COLUMNS) from the replay summaries (``replay_log``'s, or a failure's)."""
+    rows = []
+    for r in results:
+        row: dict[str, Any] = dict.fromkeys(FLEET_COLUMNS, "")
+        row["log"] = r.get("log", "")
+        if "error" in r:
+            row.update(status="failed", error=r["error"])
+            rows.append(row)
+            continue
+        cycles = int(r.get("cycles", 0))
+        modes = r.get("modes", {})
+        final = r.get("final", {})
+        row.update(
+            status="ok",
+            duration_s=r.get("log_duration_s", ""),
+            cycles=cycles,
+            segments=r.get("segments", ""),
+            sensor_fault_cycles=r.get("sensor_fault_cycles", ""),
+            overruns=r.get("overruns", 0),
+            wall_s=r.get("wall_s", ""),
+        )
+        for name in MODE_NAMES:
+            row[f"share_{name.lower()}"] = round(modes.get(name, 0) / cycles, 4) if cycles else ""
+        for key in ("tyre_scale", "c_alpha_front", "c_gamma_front", "c_alpha_rear", "c_gamma_rear"):
+            value = final.get(key)
+            row[key] = "" if value is None or not math.isfinite(value) else round(value, 4)
+        row["stiffness_valid"] = int(bool(final.get("stiffness_valid", False)))
+        rows.append(row)
+    return rows
+
+
+def write_fleet_summary(rows: Sequence[dict[str, Any]], directory: Path) -> list[Path]:
+    """``fleet.csv`` (and ``fleet.parquet`` when pyarrow is installed) in `directory`; the paths written."""
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / "fleet.csv"
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(fh, fieldnames=FLEET_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+    written = [path]
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ModuleNotFoundError:
+        return written
+    columns = {c: [None if row[c] == "" else row[c] for row in rows] for c in FLEET_COLUMNS}
+    table = pa.table(
+        {c: pa.array(v, type=pa.string() if c in ("log", "status", "error") else None) for c, v in columns.items()}
+    )
+    pq.write_table(table, directory / "fleet.parquet")
+    written.append(directory / "fleet.parquet")
+    return written

@@ -1,0 +1,147 @@
+"""Many logs at once (issue #15, part 3): directory trees and list files, local cores or a Dask cluster, and the
+fleet summary. Every output must be byte-identical to the single-process replay of that log, wherever it ran."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ptw_rt.apps.fleet import FLEET_COLUMNS, ListFileError, read_list_file
+from ptw_rt.apps.replay import replay_log
+from ptw_rt.paths import DEFAULT_CONFIG
+
+RIDES = (("dlc_50", 6.0, "a"), ("slalom_30", 8.0, "b/c"), ("dlc_100", 5.0, "b"))
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    """A tree of three short rides (one two levels down), a junk file, and each log's single-process replay."""
+    from ptw_rt.sim.recording import write_ride
+    from ptw_rt.sim.ride import simulate
+
+    base = tmp_path_factory.mktemp("fleet")
+    top = base / "rides"
+    expected = {}
+    for scenario, seconds, sub in RIDES:
+        d = top / sub
+        d.mkdir(parents=True, exist_ok=True)
+        log = write_ride(simulate(scenario, duration=seconds), d)["log"]
+        rel = log.relative_to(top)
+        ref = base / "reference" / rel
+        ref.parent.mkdir(parents=True, exist_ok=True)
+        replay_log(log, ref, None, DEFAULT_CONFIG)
+        expected[rel] = ref.read_bytes()
+    (top / "b" / "junk.log").write_bytes(b"\x00\x01 not a log\n" * 20)
+    return base, top, expected
+
+
+def _cli(args, cwd, extra_env=None):
+    return subprocess.run(
+        [sys.executable, "-m", "ptw_rt", *map(str, args)],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        errors="replace",
+        timeout=600,
+        env={**os.environ, "NUMBA_NUM_THREADS": "1", **(extra_env or {})},
+    )
+
+
+def _check(out: Path, top: Path, expected: dict, proc) -> list[dict]:
+    assert proc.returncode == 1, proc.stderr  # one junk log: a partial failure
+    for rel, data in expected.items():
+        assert (out / rel).read_bytes() == data, rel  # the same bytes as the single-process replay
+    junk = top / "b" / "junk.log"
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert errors == [f"error: {junk}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 frame in the first 64 KiB)"]
+    assert "fleet: 3 of 4 logs replayed" in proc.stderr
+    with open(out / "fleet.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == FLEET_COLUMNS
+    by_log = {Path(r["log"]).relative_to(top): r for r in rows}
+    assert by_log[Path("b/junk.log")]["status"] == "failed" and "not a CAN log" in by_log[Path("b/junk.log")]["error"]
+    for scenario, seconds, sub in RIDES:
+        row = by_log[Path(sub) / f"{scenario}.log"]
+        assert row["status"] == "ok" and int(row["cycles"]) > 0
+        shares = sum(float(row[c]) for c in FLEET_COLUMNS if c.startswith("share_"))
+        assert shares == pytest.approx(1.0, abs=1e-3)
+        assert float(row["duration_s"]) == pytest.approx(seconds, abs=0.2)
+        assert float(row["c_alpha_front"]) > 0 and row["stiffness_valid"] in ("0", "1")
+    return rows
+
+
+def test_a_tree_through_a_two_worker_local_dask_cluster(tree):
+    pytest.importorskip("dask.distributed")
+    base, top, expected = tree
+    out = base / "out_dask"
+    proc = _cli(["replay", top, "--out", out, "--dask", "local", "--jobs", "2", "--no-progress"], base)
+    _check(out, top, expected, proc)
+    summaries = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert len(summaries) == 4
+    if importlib_available("pyarrow"):
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(out / "fleet.parquet")
+        assert table.num_rows == 4 and table.column_names == list(FLEET_COLUMNS)
+
+
+def test_a_list_file_on_local_cores_by_default(tree):
+    base, top, expected = tree
+    listing = base / "rides.txt"
+    rels = sorted(expected, key=str)
+    listing.write_text("# this month's rides\n\n" + "\n".join(f"rides/{r}" for r in rels) + "\nrides/b/junk.log\n")
+    out = base / "out_list"
+    proc = _cli(["replay", "--list", listing, "--out", out, "--no-progress"], base)
+    assert proc.returncode == 1, proc.stderr
+    for rel, data in expected.items():  # a listed file keeps its name under --out
+        assert (out / rel.name).read_bytes() == data
+    assert "fleet: 3 of 4 logs replayed" in proc.stderr
+
+
+def test_the_output_directory_inside_the_tree_is_not_read_back(tree, tmp_path):
+    base, top, expected = tree
+    copy = tmp_path / "rides"
+    shutil.copytree(top, copy)
+    (copy / "b" / "junk.log").unlink()
+    for _ in range(2):  # the second run must not take the first run's outputs as inputs
+        proc = _cli(["replay", copy, "--out", copy / "est", "--no-progress"], tmp_path)
+        assert proc.returncode == 0, proc.stderr
+        assert "fleet: 3 of 3 logs replayed" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [("\n# only comments\n", "names no log"), ("a\0b\n", "NUL"), (b"\xff\xfe\x00", "UTF-8")],
+)
+def test_a_bad_list_file_is_one_line(tmp_path, content, message):
+    path = tmp_path / "list.txt"
+    path.write_bytes(content.encode() if isinstance(content, str) else content)
+    with pytest.raises(ListFileError, match=message):
+        read_list_file(path)
+    proc = _cli(["replay", "--list", path, "--out", tmp_path / "out"], tmp_path)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_dask_without_the_extra_says_so(tree, tmp_path):
+    """Without dask installed, --dask is one line naming the extra (exit 2): simulated by hiding the module."""
+    base, top, _ = tree
+    hide = tmp_path / "hide"
+    hide.mkdir()
+    (hide / "dask").mkdir()
+    (hide / "dask" / "__init__.py").write_text("raise ModuleNotFoundError('No module named dask', name='dask')\n")
+    proc = _cli(["replay", top, "--out", tmp_path / "o", "--dask", "local"], tmp_path, {"PYTHONPATH": str(hide)})
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().endswith("needs the 'fleet' extra (dask is not installed): pip install 'ptw-rt[fleet]'")
+
+
+def importlib_available(name: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(name) is not None
