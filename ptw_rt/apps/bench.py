@@ -4,8 +4,13 @@
   same code in a second process with NUMBA_DISABLE_JIT=1 (the ratio is what numba buys);
 - cycle_cpu_us: one daemon cycle's CPU work: decode the cycle's frames, condition, step, encode
   the outputs;
-- replay_x_realtime: a recorded ride replayed through the shared cycle (decode, step, encode), one
-  log on one core and several logs on all cores;
+- replay_x_realtime: a recorded ride replayed through the shared cycle (decode, step, encode), frames
+  pre-read in memory, one log on one core and several logs on all cores;
+- replay_command_x_realtime: the real command, `ptw-rt replay LOG --out OUT` (and with `--csv`) as a user runs
+  it, on a 20-minute candump log on disk (ten 120 s rides back to back), wall clock from process start,
+  numba cache warm; replay_startup_s: the same command on a 1 s log (imports, cache load, design);
+- replay_core_x_realtime: the replay work of that command alone (`replay_log` in this process, runner
+  built: read, decode, step, encode, write);
 - start_s: process start to the first completed cycle, numba cache cold and warm;
 - rss_mb: peak resident memory of the warm-start process.
 - jitter_us / latency_us / input_to_output_us: the real daemon loop on python-can's virtual bus for
@@ -115,6 +120,64 @@ def _replay_one(seconds: float) -> tuple[float, float]:
     t0 = time.perf_counter()
     drive_log(frames, runner, on_frames=lambda now, out: None, start=ride.epoch)
     return ride.duration, time.perf_counter() - t0
+
+
+def _long_log(directory: Path, copies: int = 10) -> tuple[Path, float]:
+    """A candump log of `copies` 120 s rides (handling_40_120) back to back, time stamps continuous; its length."""
+    from ptw_rt.sim.recording import write_ride
+    from ptw_rt.sim.ride import simulate
+
+    one = write_ride(simulate("handling_40_120"), directory)["log"]
+    lines = one.read_text().splitlines()
+    stamps = [float(line[1 : line.index(")")]) for line in (lines[0], lines[-1])]
+    span = stamps[1] - stamps[0] + 0.01
+    path = directory / "twenty_minutes.log"
+    with open(path, "w") as fh:
+        for k in range(copies):
+            for line in lines:
+                i = line.index(")")
+                fh.write(f"({float(line[1:i]) + k * span:.6f}){line[i + 1 :]}\n")
+    tiny = directory / "one_second.log"
+    tiny.write_text("\n".join(line for line in lines if float(line[1 : line.index(")")]) < stamps[0] + 1.0) + "\n")
+    return path, copies * span
+
+
+def measure_replay_command() -> dict:
+    """The whole `ptw-rt replay` command on a 20-minute log, wall from process start; start-up alone; the work."""
+    from ptw_rt.apps.replay import replay_log
+    from ptw_rt.edge.cycle import build_runner
+
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        log, seconds = _long_log(d)
+        command = [sys.executable, "-m", "ptw_rt", "replay", str(log), "--out", str(d / "out.log"), "--no-progress"]
+
+        def wall(args) -> float:
+            t0 = time.perf_counter()
+            subprocess.run(args, cwd=ROOT, capture_output=True, check=True)
+            return time.perf_counter() - t0
+
+        wall(command[:4] + [str(d / "one_second.log")] + command[5:])  # the numba cache warm
+        startup = wall(command[:4] + [str(d / "one_second.log")] + command[5:])
+        plain = wall(command)
+        with_csv = wall(command + ["--csv", str(d / "out.csv")])
+        runner = build_runner(DEFAULT_CONFIG)
+        runner.cycle(0.0)
+        runner = build_runner(DEFAULT_CONFIG)
+        t0 = time.perf_counter()
+        replay_log(log, d / "core.log", None, runner=runner)
+        core = time.perf_counter() - t0
+    return {
+        "replay_command_x_realtime": {
+            "out_only": round(seconds / plain, 1),
+            "with_csv": round(seconds / with_csv, 1),
+            "wall_s": round(plain, 2),
+            "log_s": round(seconds, 1),
+            "note": "ptw-rt replay on a 20-min candump file, wall clock from process start, cache warm",
+        },
+        "replay_startup_s": round(startup, 2),
+        "replay_core_x_realtime": round(seconds / core, 1),
+    }
 
 
 def measure_start(cache_dir: str) -> dict:
@@ -267,6 +330,7 @@ def run_bench(args) -> int:
             "logs": n_logs,
             "note": "frames pre-encoded in memory: decode, step and encode, no file I/O",
         },
+        **measure_replay_command(),
         "start_s": {"cold": cold["start_s"], "warm": warm["start_s"]},
         "rss_mb": warm["rss_mb"],
     }
