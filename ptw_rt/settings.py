@@ -55,6 +55,20 @@ ATTITUDE_SCHEMA = Section(
     },
 )
 
+# Plausibility monitor (ptw_rt/core/supervisor.py, docs/estimator.md "Plausibility"): the published rider torque
+# against the UIHOSMO on the sensors', windowed RMS of their difference over a threshold per speed band. The
+# thresholds are the largest windowed residual of every healthy ride of the evaluation matrix in that band
+# (2026-11-24: 3.74, 8.93, 4.34, 9.20 N m), times 1.3.
+PLAUSIBILITY_SCHEMA = Section(
+    fields={},
+    optional={
+        "window": (Number("s", gt=0.05, le=30), 1.0),
+        "band_start_kmh": (NumberList(Number("km/h", ge=0), min_len=1, max_len=8), (0.0, 30.0, 60.0, 90.0)),
+        "torque_residual_nm": (NumberList(Number("N m", gt=0), min_len=1, max_len=8), (4.9, 11.6, 5.6, 12.0)),
+        "hold": (Number("s", ge=0, le=60), 1.0),
+    },
+)
+
 # Tyre bank (ptw_rt/design/tyre_bank.py, ptw_rt/core/tyre_bank.py): the tyres' scale factor k from a bank
 # of fusion filters, one per hypothesis of k.
 TYRE_BANK_SCHEMA = Section(
@@ -156,6 +170,7 @@ ESTIMATOR_SCHEMA = Section(
     optional={
         "attitude": (ATTITUDE_SCHEMA, ATTITUDE_SCHEMA.check("estimator.attitude", {})),
         "tyre_bank": (TYRE_BANK_SCHEMA, TYRE_BANK_SCHEMA.check("estimator.tyre_bank", {})),
+        "plausibility": (PLAUSIBILITY_SCHEMA, PLAUSIBILITY_SCHEMA.check("estimator.plausibility", {})),
     },
 )
 
@@ -318,6 +333,26 @@ class TyreBankTuning:
 
 
 @dataclass(frozen=True)
+class PlausibilityTuning:
+    """The plausibility monitor's window, thresholds per speed band and hold (units in PLAUSIBILITY_SCHEMA)."""
+
+    window: float
+    band_start_kmh: tuple[float, ...]
+    torque_residual_nm: tuple[float, ...]
+    hold: float
+
+    def __post_init__(self) -> None:
+        starts = self.band_start_kmh
+        if len(starts) != len(self.torque_residual_nm):
+            raise ConfigError(
+                "estimator.plausibility: band_start_kmh and torque_residual_nm must have the same length, got "
+                f"{len(starts)} and {len(self.torque_residual_nm)}"
+            )
+        if starts[0] != 0.0 or any(b <= a for a, b in zip(starts, starts[1:], strict=False)):
+            raise ConfigError(f"estimator.plausibility.band_start_kmh: must start at 0 and increase, got {starts}")
+
+
+@dataclass(frozen=True)
 class AttitudeTuning:
     """Noise model of the kinematic attitude filter (ptw_rt.core.attitude); units in ATTITUDE_SCHEMA."""
 
@@ -363,6 +398,7 @@ class EstimatorTuning:
     roll_fusion_time_constant: float
     kalman: KalmanTuning
     attitude: AttitudeTuning
+    plausibility: PlausibilityTuning
     tyre_bank: TyreBankTuning
     force_observer_yaw_bound: float
     force_observer_lateral_bound: float
@@ -513,6 +549,7 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
         roll_fusion_time_constant=est["roll_fusion_time_constant"],
         kalman=KalmanTuning(**est["fusion_filter"]),
         attitude=AttitudeTuning(**est["attitude"]),
+        plausibility=PlausibilityTuning(**est["plausibility"]),
         tyre_bank=TyreBankTuning(**est["tyre_bank"]),
         force_observer_yaw_bound=est["force_observer_yaw_bound"],
         force_observer_lateral_bound=est["force_observer_lateral_bound"],

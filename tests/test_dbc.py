@@ -97,6 +97,15 @@ CONTRACT_OUTPUTS: dict[str, dict] = {
             "TireLearning": (None, 1, 0, 1),
         },
     },
+    # added in v1.2 (issue #16: the plausibility monitor); every earlier name unchanged
+    "EST_Plausibility": {
+        "hz": 10,
+        "signals": {
+            "TorqueResidual": ("N m", 0.01, 0.0, 655.0),
+            "PlausibilityRatio": (None, 0.001, 0.0, 65.0),
+            "RiderTorqueUIHOSMO": ("N m", 0.01, -300.0, 300.0),
+        },
+    },
     "EST_Status": {
         "hz": 10,
         "signals": {

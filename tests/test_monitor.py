@@ -54,6 +54,13 @@ class Source:
                 "OverrunCount": 0,
                 "CycleTimeUs": 800,
             }
+        if name == "EST_Plausibility":
+            return {
+                "EST_Plausibility_Valid": 1,
+                "TorqueResidual": 2.0,
+                "PlausibilityRatio": 0.4,
+                "RiderTorqueUIHOSMO": 3.0,
+            }
         if name == "EST_TireConfidence":
             return {
                 "EST_TireConfidence_Valid": 1,
@@ -81,7 +88,7 @@ class Source:
         """One 10 ms cycle: the three 100 Hz frames, plus status and stiffness every 10th cycle."""
         names = ["EST_Roll", "EST_RiderTorque", "EST_Lateral"]
         if self.k % 10 == 0:
-            names += ["EST_Status", "EST_TireStiffness", "EST_TireConfidence"]
+            names += ["EST_Status", "EST_TireStiffness", "EST_TireConfidence", "EST_Plausibility"]
         frames = [self.frame(n, moving) for n in names]
         self.k += 1
         return frames

@@ -67,13 +67,13 @@ def test_rates_counters_and_crcs(codec):
         per_cycle.append(len(frames))
         for name, values in _decode_all(codec, frames).items():  # decode_checked verifies the P11 CRCs
             seen.setdefault(name, []).append(int(values[f"{name}_Counter"]))
-    slow = ("EST_Status", "EST_TireStiffness", "EST_TireConfidence")
+    slow = ("EST_Status", "EST_TireStiffness", "EST_TireConfidence", "EST_Plausibility")
     assert enc.periods == {n: (10 if n in slow else 1) for n in enc.periods}
-    assert per_cycle[0] == 6 and per_cycle[10] == 6 and per_cycle[1] == 3 and per_cycle[9] == 3
-    assert sum(per_cycle) == 3 * 100 + 3 * 10
+    assert per_cycle[0] == 7 and per_cycle[10] == 7 and per_cycle[1] == 3 and per_cycle[9] == 3
+    assert sum(per_cycle) == 3 * 100 + 4 * 10
     for name in ("EST_Roll", "EST_RiderTorque", "EST_Lateral"):
         assert seen[name] == [k % 15 for k in range(100)]  # wraps 14 -> 0, 15 never sent
-    for name in ("EST_Status", "EST_TireStiffness", "EST_TireConfidence"):
+    for name in ("EST_Status", "EST_TireStiffness", "EST_TireConfidence", "EST_Plausibility"):
         assert seen[name] == list(range(10))
     # a counter continuing over the wrap
     assert seen["EST_Roll"][14:16] == [14, 0]

@@ -23,16 +23,18 @@ from ptw_rt.core import conditioning as cnd
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
 from ptw_rt.core import uihosmo as uh
+from ptw_rt.core import uio_sensors as cus
 from ptw_rt.core.force_observers import STA_STATE_SIZE, lateral_yaw_constants, sta_step
-from ptw_rt.core.stage import Layout, Stage, all_finite, v1, v3
+from ptw_rt.core.stage import Layout, Stage, all_finite, v1, v2, v3
 
 STATE = Layout(
     "ST_",
     uh=uh.STATE_SIZE,  # the UIHOSMO's state (ptw_rt.core.uihosmo layout)
     sta=STA_STATE_SIZE,  # the super-twisting observer's state
     uh_tmp=24,  # the UIHOSMO's scratch
+    us=cus.STATE_SIZE,  # the UIHOSMO on the sensors (ptw_rt.core.uio_sensors layout)
 )
-ST_UH, ST_STA, ST_UH_TMP = STATE.offsets
+ST_UH, ST_STA, ST_UH_TMP, ST_US = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -44,8 +46,9 @@ PARAMS = Layout(
     sta_lc_r=1,  # bound on |d/dt (M_z / I_z)| [rad/s^3]
     sta_lc_w=1,  # bound on |d a_y / dt| [m/s^3]
     geom=4,  # [M, I_z, a_f, a_r] of the CoM-referred lateral/yaw sub-model
+    us=cus.PARAM_SIZE,  # the UIHOSMO on the sensors' parameters (ptw_rt.core.uio_sensors P_*)
 )
-P_DT, P_DIFF_L, P_DIFF_SUBSTEPS, P_MAX_ROLL, P_MAX_TORQUE, P_STA_LC_R, P_STA_LC_W, P_GEOM = PARAMS.offsets
+P_DT, P_DIFF_L, P_DIFF_SUBSTEPS, P_MAX_ROLL, P_MAX_TORQUE, P_STA_LC_R, P_STA_LC_W, P_GEOM, P_US = PARAMS.offsets
 
 OUTPUTS = Layout(
     "OUT_",
@@ -55,8 +58,9 @@ OUTPUTS = Layout(
     fy_front=1,  # N, the super-twisting observer's tyre forces (0 while not running)
     fy_rear=1,
     reset=1,  # 1: the UIHOSMO diverged this cycle and was reset
+    us=cus.OUT_SIZE,  # the UIHOSMO on the sensors (ptw_rt.core.uio_sensors OUT layout): torque, valid
 )
-OUT_UH, OUT_ROLL, OUT_TORQUE, OUT_FY_FRONT, OUT_FY_REAR, OUT_RESET = OUTPUTS.offsets
+OUT_UH, OUT_ROLL, OUT_TORQUE, OUT_FY_FRONT, OUT_FY_REAR, OUT_RESET, OUT_US = OUTPUTS.offsets
 
 # design tables, in the order `diagnostics_stage` reads them from its first table row
 TABLES = (
@@ -72,6 +76,17 @@ TABLES = (
     ("uh_Ramp21", 3),
     ("lam_steer", 1),
     ("lam_yaw", 1),
+    ("us_C", 2),
+    ("us_Phi", 3),
+    ("us_Gamma", 3),
+    ("us_Ramp", 3),
+    ("us_T_inv", 3),
+    ("us_Abar", 3),
+    ("us_Dbar_inv", 3),
+    ("us_Phi22", 3),
+    ("us_Gamma21", 3),
+    ("us_Ramp21", 3),
+    ("us_lam", 2),
 )
 (
     T_GRID,
@@ -86,6 +101,17 @@ TABLES = (
     T_RAMP21,
     T_LAM_STEER,
     T_LAM_YAW,
+    T_US_C,
+    T_US_PHI,
+    T_US_GAMMA,
+    T_US_RAMP,
+    T_US_T_INV,
+    T_US_ABAR,
+    T_US_DBAR_INV,
+    T_US_PHI22,
+    T_US_GAMMA21,
+    T_US_RAMP21,
+    T_US_LAM,
 ) = range(len(TABLES))
 
 
@@ -100,6 +126,7 @@ def build_params(settings, design) -> np.ndarray:
         sta_lc_r=est.force_observer_yaw_bound,
         sta_lc_w=est.force_observer_lateral_bound,
         geom=lateral_yaw_constants(settings.vehicle),
+        us=cus.stage_params(design),
     )
 
 
@@ -198,6 +225,40 @@ def diagnostics_stage(
     out[OUT_TORQUE] = tau_uio
     out[OUT_RESET] = 1.0 if reset else 0.0
 
+    # the UIHOSMO on the sensors (issue #16): rider torque from steer'' with the attitude filter's roll as a
+    # measured input, a diverse check of the published torque (the supervisor's plausibility monitor)
+    us_state = st[ST_US : ST_US + cus.STATE_SIZE]
+    us_out = out[OUT_US : OUT_US + cus.OUT_SIZE]
+    if run:
+        a_y = cond[cnd.OUT_A_Y] if inputs[inp.OUT_ACCEL_OK] != 0.0 else math.nan  # nan: held, not valid
+        cus.uio_sensors_step(
+            us_state,
+            us_out,
+            prm[P_US : P_US + cus.PARAM_SIZE],
+            v1(tables, tindex, t0 + T_GRID),
+            v2(tables, tindex, t0 + T_US_C),
+            v3(tables, tindex, t0 + T_US_PHI),
+            v3(tables, tindex, t0 + T_US_GAMMA),
+            v3(tables, tindex, t0 + T_US_RAMP),
+            v3(tables, tindex, t0 + T_US_T_INV),
+            v3(tables, tindex, t0 + T_US_ABAR),
+            v3(tables, tindex, t0 + T_US_DBAR_INV),
+            v3(tables, tindex, t0 + T_US_PHI22),
+            v3(tables, tindex, t0 + T_US_GAMMA21),
+            v3(tables, tindex, t0 + T_US_RAMP21),
+            v2(tables, tindex, t0 + T_US_LAM),
+            delta,
+            r_ground,
+            cond[cnd.OUT_ROLL_RATE],
+            a_y,
+            cond[cnd.OUT_DEROLL],
+            u,
+        )
+    else:
+        cus.uio_sensors_reset(us_state)
+        for k in range(cus.OUT_SIZE):
+            us_out[k] = 0.0
+
 
 STAGE = Stage(
     name="diagnostics",
@@ -206,6 +267,10 @@ STAGE = Stage(
     outputs=OUTPUTS,
     build_params=build_params,
     tables=TABLES,
-    constants={"lam_steer": uh.LAMBDA_STEER, "lam_yaw": uh.LAMBDA_YAW},
+    constants={
+        "lam_steer": uh.LAMBDA_STEER,
+        "lam_yaw": uh.LAMBDA_YAW,
+        "us_lam": lambda design: cus.stage_lambdas(design.us_degrees),
+    },
     doc="seed 000's UIHOSMO (roll, rider torque) and seed 003's super-twisting tyre forces, unpublished",
 )

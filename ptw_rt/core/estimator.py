@@ -48,6 +48,7 @@ from ptw_rt.core import lateral as lat
 from ptw_rt.core import speed as spd
 from ptw_rt.core import stiffness as stf
 from ptw_rt.core import supervisor as sup
+from ptw_rt.core import uio_sensors as cus
 from ptw_rt.core.conditioning import ground_yaw_rate
 from ptw_rt.core.layout import (
     E_C_ALPHA_FRONT,
@@ -71,6 +72,7 @@ from ptw_rt.core.layout import (
     E_LAT_VEL_ADAPTIVE,
     E_MODE,
     E_PITCH_GYRO_BIAS,
+    E_PLAUSIBILITY,
     E_REASONS,
     E_RIDER_TORQUE,
     E_ROLL,
@@ -84,7 +86,9 @@ from ptw_rt.core.layout import (
     E_SPEED,
     E_STEER,
     E_STEER_RATE,
+    E_TORQUE_RESIDUAL,
     E_TORQUE_UIHOSMO,
+    E_TORQUE_UIO_SENSORS,
     E_TYRE_LEARNING,
     E_TYRE_LOG_SD,
     E_TYRE_NIS,
@@ -188,6 +192,10 @@ def publish(
     est[E_FY_FRONT_ADAPTIVE] = o_stf[stf.OUT_FY_FRONT]
     est[E_FY_REAR_ADAPTIVE] = o_stf[stf.OUT_FY_REAR]
     est[E_Y_A] = o_stf[stf.OUT_Y_A]
+    us = o_dia[dia.OUT_US : dia.OUT_US + cus.OUT_SIZE]
+    est[E_TORQUE_UIO_SENSORS] = us[cus.OUT_TORQUE] if us[cus.OUT_VALID] != 0.0 else 0.0
+    est[E_TORQUE_RESIDUAL] = o_sup[sup.OUT_TORQUE_RESIDUAL]
+    est[E_PLAUSIBILITY] = o_sup[sup.OUT_PLAUSIBILITY]
     # last line of defence: nothing non-finite leaves the step
     for k in range(ESTIMATES_SIZE):
         if not math.isfinite(est[k]):

@@ -119,7 +119,10 @@ E_C_ALPHA_FRONT_SEED001 = 39  # N/rad, seed 001's adaptive observer (the seed's 
 E_C_GAMMA_FRONT_SEED001 = 40
 E_C_ALPHA_REAR_SEED001 = 41
 E_C_GAMMA_REAR_SEED001 = 42
-ESTIMATES_SIZE = 43
+E_TORQUE_UIO_SENSORS = 43  # N m, the UIHOSMO on the sensors' rider torque (issue #16; 0 while it is not valid)
+E_TORQUE_RESIDUAL = 44  # N m, windowed RMS of published - E_TORQUE_UIO_SENSORS (the plausibility monitor's)
+E_PLAUSIBILITY = 45  # that residual over its speed-dependent threshold: > 1 raises REASON_IMPLAUSIBLE
+ESTIMATES_SIZE = 46
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -177,6 +180,9 @@ ESTIMATE_NAMES = (
     "c_gamma_front_seed001",
     "c_alpha_rear_seed001",
     "c_gamma_rear_seed001",
+    "torque_uio_sensors",
+    "torque_residual",
+    "plausibility",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

@@ -114,8 +114,9 @@ class Stage:
 
     ``tables``: ``(name, ndim)`` of the design tables the stage reads, in the order its jitted function takes
     them (``t0 + k`` is table ``k`` for a stage whose first table row is ``t0``); ``constants`` supplies a
-    table that is not in the design file. ``new_state(settings, design)``: the initial state (default zeros of
-    the layout; a stage whose state size depends on the config makes its own, at least ``state.size`` long).
+    table that is not in the design file (an array, or a function of the design that makes it).
+    ``new_state(settings, design)``: the initial state (default zeros of the layout; a stage whose state size
+    depends on the config makes its own, at least ``state.size`` long).
     ``reset(state)``: what ``Estimator.reset`` does to it (default: all zero).
     """
 
@@ -125,7 +126,7 @@ class Stage:
     outputs: Layout
     build_params: Callable[..., np.ndarray]
     tables: tuple[tuple[str, int], ...] = ()
-    constants: Mapping[str, np.ndarray] = field(default_factory=dict)
+    constants: Mapping[str, np.ndarray | Callable[..., np.ndarray]] = field(default_factory=dict)
     new_state: Callable[..., np.ndarray] | None = None
     reset: Callable[[np.ndarray], None] | None = None
     doc: str = ""
@@ -146,7 +147,11 @@ class Stage:
     def table_arrays(self, design) -> list[np.ndarray]:
         out = []
         for name, ndim in self.tables:
-            table = np.asarray(self.constants[name] if name in self.constants else getattr(design, name))
+            if name in self.constants:  # a fixed array, or one made from the design (a callable)
+                constant = self.constants[name]
+                table = np.asarray(constant(design) if callable(constant) else constant)
+            else:
+                table = np.asarray(getattr(design, name))
             if table.ndim != ndim:
                 raise ValueError(f"stage {self.name}: table {name} has {table.ndim} dimensions, expected {ndim}")
             out.append(table)

@@ -30,9 +30,11 @@ from ptw_rt.core import attitude as att
 from ptw_rt.core import conditioning as cnd
 from ptw_rt.core import diagnostics as dia
 from ptw_rt.core import inputs as inp
+from ptw_rt.core import kalman as kf
 from ptw_rt.core import lateral as lat
 from ptw_rt.core import speed as spd
 from ptw_rt.core import stiffness as stf
+from ptw_rt.core import uio_sensors as cus
 from ptw_rt.core.layout import (
     MODE_CONVERGING,
     MODE_DEGRADED,
@@ -42,6 +44,7 @@ from ptw_rt.core.layout import (
     REASON_ATTITUDE_INCONSISTENT,
     REASON_DIVERGING,
     REASON_GPS_LOST,
+    REASON_IMPLAUSIBLE,
     REASON_SPEED_LOW,
     REASON_STALE,
     V_CAMBER,
@@ -66,8 +69,19 @@ STATE = Layout(
     tyre_alarm_until=1,  # s: the tyres are not valid before this (a short-window inconsistency was seen)
     tyre_stable_since=1,  # s: since when the most likely tyre hypothesis has been the same and concentrated
     tyre_last_map=1,  # that hypothesis' scale
+    torque_ms=1,  # N^2 m^2: windowed mean square of published - UIHOSMO-on-sensors torque (plausibility)
+    implausible_until=1,  # s: the plausibility alarm holds until this
 )
-ST_TIME, ST_REASON_UNTIL, ST_TYRE_ALARM_UNTIL, ST_TYRE_STABLE_SINCE, ST_TYRE_LAST_MAP = STATE.offsets
+(
+    ST_TIME,
+    ST_REASON_UNTIL,
+    ST_TYRE_ALARM_UNTIL,
+    ST_TYRE_STABLE_SINCE,
+    ST_TYRE_LAST_MAP,
+    ST_TORQUE_MS,
+    ST_IMPLAUSIBLE_UNTIL,
+) = STATE.offsets
+MAX_BANDS = 8  # speed bands of the plausibility threshold
 
 PARAMS = Layout(
     "P_",
@@ -81,6 +95,11 @@ PARAMS = Layout(
     tyre_valid_max_nis_fast=1,  # ... and its short-window NIS has not exceeded this
     tyre_hold=1,  # s: for this long after it did
     tyre_settle=1,  # s the most likely hypothesis must have stayed the same
+    plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
+    plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
+    band_count=1,  # speed bands of the threshold
+    band_start=MAX_BANDS,  # m/s where each band starts (increasing, the first 0)
+    band_threshold=MAX_BANDS,  # N m: RMS residual beyond which the torque is implausible, per band
 )
 (
     P_DT,
@@ -93,6 +112,11 @@ PARAMS = Layout(
     P_TYRE_VALID_MAX_NIS_FAST,
     P_TYRE_HOLD,
     P_TYRE_SETTLE,
+    P_PLAUSIBILITY_ALPHA,
+    P_PLAUSIBILITY_HOLD,
+    P_BAND_COUNT,
+    P_BAND_START,
+    P_BAND_THRESHOLD,
 ) = PARAMS.offsets
 
 OUTPUTS = Layout(
@@ -101,8 +125,10 @@ OUTPUTS = Layout(
     reasons=1,  # REASON_* bits
     valid=1,  # V_* bits
     roll_sd=1,  # rad, standard deviation of the published roll (10 when unknown)
+    torque_residual=1,  # N m, windowed RMS of published - UIHOSMO-on-sensors rider torque (0 while not compared)
+    plausibility=1,  # that over its speed band's threshold (> 1: REASON_IMPLAUSIBLE)
 )
-OUT_MODE, OUT_REASONS, OUT_VALID, OUT_ROLL_SD = OUTPUTS.offsets
+OUT_MODE, OUT_REASONS, OUT_VALID, OUT_ROLL_SD, OUT_TORQUE_RESIDUAL, OUT_PLAUSIBILITY = OUTPUTS.offsets
 
 
 def build_params(settings, design) -> np.ndarray:
@@ -118,7 +144,19 @@ def build_params(settings, design) -> np.ndarray:
         tyre_valid_max_nis_fast=est.tyre_bank.valid_max_nis_fast,
         tyre_hold=est.tyre_bank.alarm_hold,
         tyre_settle=est.tyre_bank.settle_time,
+        plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
+        plausibility_hold=est.plausibility.hold,
+        band_count=len(est.plausibility.band_start_kmh),
+        band_start=_padded([v / 3.6 for v in est.plausibility.band_start_kmh]),
+        band_threshold=_padded(est.plausibility.torque_residual_nm),
     )
+
+
+def _padded(values) -> np.ndarray:
+    """MAX_BANDS entries, the unused ones 0 (never read: `band_count` says how many there are)."""
+    out = np.zeros(MAX_BANDS)
+    out[: len(values)] = values
+    return out
 
 
 @njit(cache=True)
@@ -138,6 +176,37 @@ def _held_reasons(st: np.ndarray) -> int:
         if st[ST_REASON_UNTIL + k] > st[ST_TIME]:
             bits |= 1 << k
     return bits
+
+
+@njit(cache=True)
+def _plausibility(
+    st: np.ndarray, prm: np.ndarray, out: np.ndarray, cond: np.ndarray, diag: np.ndarray, lateral: np.ndarray, u: float
+) -> bool:
+    """The plausibility monitor (docs/estimator.md, "Plausibility"): is the published rider torque (the tyre
+    bank's fusion filters) contradicted by the UIHOSMO on the sensors (model inversion through steer'' with
+    finite-time differentiators: a structurally different path)? The windowed RMS of their difference against
+    the threshold of the speed band, learned from the evaluation matrix's healthy rides; the alarm is held
+    `plausibility_hold` after the residual is back. Compared only while both run and have settled."""
+    us = diag[dia.OUT_US : dia.OUT_US + cus.OUT_SIZE]
+    compare = (
+        cond[cnd.OUT_RUN] != 0.0 and lateral[lat.OUT_RUN_TIME] >= prm[P_CONVERGE_TIME] and us[cus.OUT_VALID] != 0.0
+    )
+    if compare:
+        r = lateral[lat.OUT_Z + kf.TAU] - us[cus.OUT_TORQUE]
+        st[ST_TORQUE_MS] += prm[P_PLAUSIBILITY_ALPHA] * (r * r - st[ST_TORQUE_MS])
+    else:
+        st[ST_TORQUE_MS] = 0.0
+    band = 0
+    for k in range(1, int(prm[P_BAND_COUNT])):
+        if u >= prm[P_BAND_START + k]:
+            band = k
+    rms = math.sqrt(max(st[ST_TORQUE_MS], 0.0))
+    ratio = rms / prm[P_BAND_THRESHOLD + band]
+    if compare and ratio > 1.0:
+        st[ST_IMPLAUSIBLE_UNTIL] = st[ST_TIME] + prm[P_PLAUSIBILITY_HOLD]
+    out[OUT_TORQUE_RESIDUAL] = rms
+    out[OUT_PLAUSIBILITY] = ratio
+    return st[ST_IMPLAUSIBLE_UNTIL] > st[ST_TIME]
 
 
 @njit(cache=True)
@@ -165,8 +234,11 @@ def supervisor_stage(
     _raise(st, (reasons_now | REASON_DIVERGING) if diverged else reasons_now, prm[P_REASON_HOLD])
     if attitude[att.OUT_INCONSISTENT] != 0.0:  # held by the attitude stage's own monitor
         reasons_now |= REASON_ATTITUDE_INCONSISTENT
+    implausible = _plausibility(st, prm, out, cond, diag, lateral, speed[spd.OUT_U])
+    if implausible:
+        reasons_now |= REASON_IMPLAUSIBLE
     # conditions that are states, not events, end as soon as they end
-    states = REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE | REASON_ATTITUDE_INCONSISTENT
+    states = REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE | REASON_ATTITUDE_INCONSISTENT | REASON_IMPLAUSIBLE
     reasons = (reasons_now & states) | (_held_reasons(st) & ~states)
 
     core_ok = inputs[inp.OUT_CORE_OK] != 0.0
@@ -204,7 +276,9 @@ def supervisor_stage(
     ):
         valid |= V_ROLL
     if run and run_time >= prm[P_CONVERGE_TIME]:  # the observers have settled
-        valid |= V_RIDER_TORQUE | V_STEER_RATE
+        valid |= V_STEER_RATE
+        if not implausible:  # the diverse channel does not contradict it
+            valid |= V_RIDER_TORQUE
         valid |= V_LAT_VEL
         if accel_ok:
             valid |= V_FY_FRONT | V_FY_REAR

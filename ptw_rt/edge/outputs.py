@@ -24,12 +24,15 @@ from ptw_rt.core.layout import (
     E_FY_REAR,
     E_LAT_VEL,
     E_MODE,
+    E_PLAUSIBILITY,
     E_REASONS,
     E_RIDER_TORQUE,
     E_ROLL,
     E_ROLL_RATE,
     E_STEER,
     E_STEER_RATE,
+    E_TORQUE_RESIDUAL,
+    E_TORQUE_UIO_SENSORS,
     E_TYRE_LEARNING,
     E_TYRE_LOG_SD,
     E_TYRE_NIS,
@@ -78,11 +81,19 @@ SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
         ("TireModelConsistency", E_TYRE_NIS, 0),
         ("TireLearning", E_TYRE_LEARNING, 0),
     ),
+    # the plausibility monitor (issue #16): diagnostics, valid while the estimator runs
+    "EST_Plausibility": (
+        ("TorqueResidual", E_TORQUE_RESIDUAL, 0),
+        ("PlausibilityRatio", E_PLAUSIBILITY, 0),
+        ("RiderTorqueUIHOSMO", E_TORQUE_UIO_SENSORS, 0),
+    ),
 }
 # group validity bits of EST_TireStiffness
 _STIFFNESS_VALID = (("CorneringStiffness_Valid", V_CORNERING), ("CamberStiffness_Valid", V_CAMBER))
 FAST_MESSAGES = ("EST_Roll", "EST_RiderTorque", "EST_Lateral")
-SLOW_MESSAGES = ("EST_Status", "EST_TireStiffness", "EST_TireConfidence")
+SLOW_MESSAGES = ("EST_Status", "EST_TireStiffness", "EST_TireConfidence", "EST_Plausibility")
+# slow messages encoded from SIGNAL_MAP (EST_Status has its own encoder)
+_SLOW_SIGNAL_MESSAGES = tuple(name for name in SLOW_MESSAGES if name in SIGNAL_MAP)
 _STATUS_SIGNALS = ("Mode", "SensorTimeouts", "ReasonBits", "OverrunCount", "CycleTimeUs")
 
 
@@ -225,7 +236,7 @@ class OutputEncoder:
         ]
         if cycle_index % periods["EST_Status"] == 0:
             out.append(self.status_frame(estimates, stale_bits, status or {}, reasons=reasons))
-        for name in ("EST_TireStiffness", "EST_TireConfidence"):
+        for name in _SLOW_SIGNAL_MESSAGES:
             if cycle_index % periods[name] == 0:
                 out.append(self._signal_frame(name, est, mode_ok, valid))
         return out
