@@ -49,7 +49,16 @@ def test_settle_time_and_cornering_seconds():
 
 
 def _cell(
-    scenario="slalom_30", variant="nominal", ours=0.3, peer=0.5, tau_pct=10.0, tau_zero=0.3, err=(5, 12), share=0.8
+    scenario="slalom_30",
+    variant="nominal",
+    ours=0.3,
+    peer=0.5,
+    tau_pct=10.0,
+    tau_zero=0.3,
+    err=(5, 12),
+    share=0.8,
+    uio_pct=18.0,
+    alarms=0,
 ):
     sv = {
         "valid_frames": 100,
@@ -69,8 +78,10 @@ def _cell(
                 "zero_estimate_rmse_nm": 3.0,
                 "pct_of_peak": tau_pct,
                 "ratio_to_zero": tau_zero,
+                "uihosmo_pct_of_peak": uio_pct,
             },
             "stiffness_valid": {k: dict(sv) for k, *_ in mx.STIFFNESS},
+            "alarm_cycles": {"implausible": alarms, "attitude_inconsistent": 0},
         },
     }
 
@@ -88,6 +99,7 @@ def test_targets_met_and_each_miss_flagged():
         "stiffness_valid_mean_le_10pct": dict(err=(11, 15)),
         "stiffness_valid_max_le_20pct": dict(err=(5, 25)),
         "stiffness_valid_ge_50pct_second_half": dict(share=0.4),
+        "no_false_alarm": dict(alarms=3),
     }
     for target, kwargs in misses.items():
         cells = copy.deepcopy(good) + [_cell(variant="tyres x0.7", **kwargs)]
@@ -96,6 +108,9 @@ def test_targets_met_and_each_miss_flagged():
         assert res["overall"][target]["met"] is False, target
         assert res["overall"][target]["missed"] == ["slalom_30 / tyres x0.7"], target
         assert res["cells"]["slalom_30 / tyres x0.7"][target] is False
+    # the UIHOSMO on the sensors beyond 25 % of the peak (a target of the nominal cells only)
+    res = mx.check_targets(copy.deepcopy(good) + [_cell("urban", uio_pct=30.0)])
+    assert res["overall"]["uihosmo_torque_le_25pct_peak"]["missed"] == ["urban / nominal"]
     # dlc_100 nominal roll above 0.45 deg, the matrix mean ratio above 0.7
     res = mx.check_targets([_cell("dlc_100", ours=0.5, peer=0.6)])
     assert res["overall"]["dlc_100_roll_le_0.45deg"]["met"] is False

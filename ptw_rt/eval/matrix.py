@@ -53,6 +53,7 @@ BITS = (("cornering", L.V_CORNERING), ("camber", L.V_CAMBER))
 # the targets of issue #12
 ROLL_MAX_DEG = 1.0
 ROLL_MEAN_RATIO_TO_PEER = 0.7
+UIHOSMO_MAX_PCT_OF_PEAK = 25.0  # issue #16: the UIHOSMO on the sensors' torque RMSE, % of the ride's peak
 TORQUE_MAX_PCT_OF_PEAK = 15.0
 TORQUE_MAX_RATIO_TO_ZERO = 0.5
 STIFFNESS_VALID_MEAN_PCT = 10.0
@@ -164,6 +165,8 @@ def cell_metrics(evaluation) -> dict:
     t_peak = float(np.max(np.abs(torque))) if torque.size else 0.0
     t_zero = _rms(torque)
     valid_bits = E[:, L.E_VALID].astype(np.int64)
+    reasons = E[:, L.E_REASONS].astype(np.int64)
+    uio_rmse = _rms(E[m, L.E_TORQUE_UIO_SENSORS] - torque)
     stiffness = {}
     for name, col, tcol, bit in STIFFNESS:
         stiffness[name] = valid_stiffness_stats(
@@ -184,8 +187,15 @@ def cell_metrics(evaluation) -> dict:
             "zero_estimate_rmse_nm": _r(t_zero),
             "pct_of_peak": _r(100.0 * t_rmse / t_peak, 1) if t_rmse is not None and t_peak > 0 else None,
             "ratio_to_zero": _r(t_rmse / t_zero) if t_rmse is not None and t_zero else None,
+            # seed 000's UIHOSMO on the sensors (issue #16), the diverse channel of the plausibility monitor
+            "uihosmo_pct_of_peak": _r(100.0 * uio_rmse / t_peak, 1) if uio_rmse is not None and t_peak > 0 else None,
         },
         "stiffness_valid": stiffness,
+        # alarms on a healthy ride are false alarms: cycles with each monitor's reason bit raised
+        "alarm_cycles": {
+            "implausible": int(np.count_nonzero(reasons & L.REASON_IMPLAUSIBLE)),
+            "attitude_inconsistent": int(np.count_nonzero(reasons & L.REASON_ATTITUDE_INCONSISTENT)),
+        },
     }
 
 
@@ -217,6 +227,11 @@ def cell_targets(cell: dict) -> dict[str, bool | None]:
         out["stiffness_valid_ge_50pct_second_half"] = all(x >= VALID_SHARE_MIN for x in shares)
     if cell["scenario"] == "dlc_100" and cell["variant"] == "nominal":
         out["dlc_100_roll_le_0.45deg"] = _ok(r["ours"], DLC100_ROLL_MAX_DEG)
+    if cell["variant"] == "nominal":  # issue #16: the UIHOSMO alone, realistic plant, standard sensors
+        out["uihosmo_torque_le_25pct_peak"] = _ok(m["torque"].get("uihosmo_pct_of_peak"), UIHOSMO_MAX_PCT_OF_PEAK)
+    # issue #16: the plausibility monitor never fires on a healthy ride (nor the attitude monitor)
+    alarms = m.get("alarm_cycles", {})
+    out["no_false_alarm"] = not any(alarms.values()) if alarms else None
     follow = cell.get("mu_drop_follow")
     if follow is not None:
         times = [v["time_s"] for v in follow.values()]
@@ -403,7 +418,8 @@ def cell_table(cells: Sequence[dict]) -> str:
     """One line per cell: roll (ours/peer/ratio, UIHOSMO, kin, comp), torque, stiffness valid, targets."""
     head = (
         f"{'scenario':<16}{'variant':<12}{'roll':>6}{'peer':>6}{'r/p':>6}{'uio':>7}{'kin':>6}{'comp':>6}"
-        f"{'tau%pk':>7}{'tau/0':>6}  {'stiffness valid: mean|max|err| % (share 2nd half) Caf Cgf Car Cgr':<74}"
+        f"{'tau%pk':>7}{'tau/0':>6}{'uio%pk':>7}"
+        f"  {'stiffness valid: mean|max|err| % (share 2nd half) Caf Cgf Car Cgr':<74}"
         "  missed"
     )
     lines = [head, "-" * len(head)]
@@ -423,14 +439,18 @@ def cell_table(cells: Sequence[dict]) -> str:
         lines.append(
             f"{c['scenario']:<16}{c['variant']:<12}{_f(r['ours'], 6)}{_f(r['peer'], 6)}"
             f"{_f(m['roll_ratio_to_peer'], 6)}{_f(r['uihosmo'], 7, 1)}{_f(r['kinematic'], 6)}"
-            f"{_f(r['complementary'], 6)}{_f(tq['pct_of_peak'], 7, 1)}{_f(tq['ratio_to_zero'], 6)}  "
+            f"{_f(r['complementary'], 6)}{_f(tq['pct_of_peak'], 7, 1)}{_f(tq['ratio_to_zero'], 6)}"
+            f"{_f(tq.get('uihosmo_pct_of_peak'), 7, 1)}  "
             f"{' '.join(f'{x:>18}' for x in stiff):<74}  {', '.join(missed) or '-'}"
         )
     lines.append(
-        "roll: RMSE [deg] ours / Fusion AHRS peer / ours:peer / UIHOSMO diagnostic / kinematic / complementary;"
+        "roll: RMSE [deg] ours / Fusion AHRS peer / ours:peer / UIHOSMO diagnostic (seed 000 case 2) / kinematic /"
+        " complementary;"
     )
     lines.append(
-        "tau%pk: rider torque RMSE in % of the ride's peak; tau/0: over the RMSE of an all-zero estimate; stiffness:"
+        "tau%pk: rider torque RMSE in % of the ride's peak; tau/0: over the RMSE of an all-zero estimate; uio%pk:"
+        " the UIHOSMO on the sensors' torque RMSE in % of the peak (issue #16: the plausibility monitor's channel);"
+        " stiffness:"
     )
     lines.append("mean|max |error| over the scored frames flagged valid (- none), share of the 2nd half flagged valid")
     return "\n".join(lines)
