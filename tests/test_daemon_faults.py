@@ -29,7 +29,16 @@ import numpy as np
 import pytest
 from test_daemon import Feeder, _channel, _settings
 
-from ptw_rt.core.layout import E_MODE, E_VALID, MODE_DEGRADED, MODE_VALID, REASON_OVERRUN, V_CAMBER, V_CORNERING
+from ptw_rt.core.layout import (
+    E_MODE,
+    E_REASONS,
+    E_VALID,
+    MODE_DEGRADED,
+    MODE_VALID,
+    REASON_OVERRUN,
+    V_CAMBER,
+    V_CORNERING,
+)
 from ptw_rt.errors import EXIT_UNAVAILABLE
 from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.io.state_file import load_state, save_state
@@ -353,7 +362,7 @@ def test_missed_cycles_cost(tmp_path):
 def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frames):
     channel = _channel()
     daemon = _daemon(tmp_path, channel=channel)
-    trace: list[tuple[float, int, int]] = []  # (ride time, mode, overruns so far)
+    trace: list[tuple[float, int, int, int]] = []  # (ride time, mode, overruns so far, reason bits)
     # at these ride times the loop stalls 25 ms (1 missed cycle: 10 ms is the period, 20 ms still on time), then
     # 65 ms (5 missed cycles)
     stalls = {2.5: 0.025, 4.0: 0.065}
@@ -363,7 +372,7 @@ def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frame
     def on_cycle(now, e):
         if not t0:
             t0.append(now)
-        trace.append((now - t0[0], int(e[E_MODE]), daemon.overruns))
+        trace.append((now - t0[0], int(e[E_MODE]), daemon.overruns, int(e[E_REASONS])))
         if int(e[E_MODE]) == MODE_DEGRADED:
             degraded_reasons.append(daemon.runner.process_reasons)
         for at in list(stalls):
@@ -373,17 +382,18 @@ def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frame
     daemon.on_cycle = on_cycle
     _run(daemon, 5.5, Feeder(channel, ride_frames, duration=6.0))
     assert not stalls
-    before = [m for t, m, _ in trace if 2.0 <= t < 2.5]
-    isolated = [m for t, m, _ in trace if 2.5 <= t < 3.9]
-    burst = [m for t, m, _ in trace if 4.0 <= t < 4.2]
-    after = [m for t, m, _ in trace if 5.2 <= t]
-    missed_isolated = next(n for t, _, n in trace if t >= 3.0) - next(n for t, _, n in trace if t >= 2.4)
+    before = [m for t, m, *_ in trace if 2.0 <= t < 2.5]
+    # a failure names the reason bits of every cycle that was not VALID (an overrun must be the only one)
+    isolated = [(m, r) for t, m, _, r in trace if 2.5 <= t < 3.9 and m != MODE_VALID]
+    burst = [m for t, m, *_ in trace if 4.0 <= t < 4.2]
+    after = [(m, r) for t, m, _, r in trace if 5.2 <= t and m != MODE_VALID]
+    missed_isolated = next(n for t, _, n, _ in trace if t >= 3.0) - next(n for t, _, n, _ in trace if t >= 2.4)
     assert 1 <= missed_isolated <= OverrunRule().limit, missed_isolated
     assert before and all(m == MODE_VALID for m in before), before
-    assert all(m == MODE_VALID for m in isolated), isolated  # counted, VALID kept
+    assert not isolated, isolated  # counted, VALID kept
     assert MODE_DEGRADED in burst  # 5 missed cycles within a second: DEGRADED ...
     assert degraded_reasons and all(r & REASON_OVERRUN for r in degraded_reasons)  # ... saying why in ReasonBits
-    assert all(m == MODE_VALID for m in after)  # ... for the window (1 s), then VALID again
+    assert not after, after  # ... for the window (1 s), then VALID again
     assert daemon.overruns >= 6 and daemon.overrun_degraded_cycles <= 110
 
 

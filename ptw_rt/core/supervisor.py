@@ -82,6 +82,7 @@ STATE = Layout(
     ST_IMPLAUSIBLE_UNTIL,
 ) = STATE.offsets
 MAX_BANDS = 8  # speed bands of the plausibility threshold
+RESIDUAL_CLIP = 2.0  # thresholds: bound of one cycle's torque difference in the plausibility window
 
 PARAMS = Layout(
     "P_",
@@ -191,17 +192,23 @@ def _plausibility(
     compare = (
         cond[cnd.OUT_RUN] != 0.0 and lateral[lat.OUT_RUN_TIME] >= prm[P_CONVERGE_TIME] and us[cus.OUT_VALID] != 0.0
     )
-    if compare:
-        r = lateral[lat.OUT_Z + kf.TAU] - us[cus.OUT_TORQUE]
-        st[ST_TORQUE_MS] += prm[P_PLAUSIBILITY_ALPHA] * (r * r - st[ST_TORQUE_MS])
-    else:
-        st[ST_TORQUE_MS] = 0.0
     band = 0
     for k in range(1, int(prm[P_BAND_COUNT])):
         if u >= prm[P_BAND_START + k]:
             band = k
+    threshold = prm[P_BAND_THRESHOLD + band]
+    if compare:
+        # each cycle's difference bounded at RESIDUAL_CLIP thresholds: a spike of a few cycles (the steer
+        # differentiator after a loop stall or a late burst of frames) is not a disagreement; a persistent one
+        # still fills the window within ~0.3 s
+        r = min(
+            max(lateral[lat.OUT_Z + kf.TAU] - us[cus.OUT_TORQUE], -RESIDUAL_CLIP * threshold), RESIDUAL_CLIP * threshold
+        )
+        st[ST_TORQUE_MS] += prm[P_PLAUSIBILITY_ALPHA] * (r * r - st[ST_TORQUE_MS])
+    else:
+        st[ST_TORQUE_MS] = 0.0
     rms = math.sqrt(max(st[ST_TORQUE_MS], 0.0))
-    ratio = rms / prm[P_BAND_THRESHOLD + band]
+    ratio = rms / threshold
     if compare and ratio > 1.0:
         st[ST_IMPLAUSIBLE_UNTIL] = st[ST_TIME] + prm[P_PLAUSIBILITY_HOLD]
     out[OUT_TORQUE_RESIDUAL] = rms
