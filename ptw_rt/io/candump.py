@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, NamedTuple
@@ -208,6 +208,8 @@ class CandumpWriter:
         format_line(0.0, channel, 0, b"")  # validate the channel name early
         self.channel = channel
         self.lines_written = 0
+        # write_cycle: frame id -> its " ID#" text (checked once by format_line), not formatted per frame
+        self._id_text: dict[int, str] = {}
 
     def write(
         self,
@@ -220,6 +222,24 @@ class CandumpWriter:
     ) -> None:
         self._stream.write(format_line(timestamp, channel or self.channel, frame_id, data, extended=extended) + "\n")
         self.lines_written += 1
+
+    def write_cycle(self, timestamp: float, frames: Sequence[tuple[int, bytes]]) -> None:
+        """All frames of one cycle, stamped ``timestamp``, in one write: the same lines as ``write`` per frame
+        (byte for byte), at a fraction of the cost (replay writes ~3 frames per 10 ms of log)."""
+        head = format_line(timestamp, self.channel, 0, b"")  # checks the stamp once for the whole cycle
+        head = head[: head.index(" ", head.index(" ") + 1)]  # "(stamp) channel"
+        ids = self._id_text
+        parts = []
+        for frame_id, data in frames:
+            fid = ids.get(frame_id)
+            if fid is None:
+                line = format_line(timestamp, self.channel, frame_id, b"")  # range check, as write does
+                fid = ids[frame_id] = line[len(head) :]  # " ID#"
+            if len(data) > _MAX_DATA:
+                raise ValueError(f"classic CAN payload is at most 8 bytes, got {len(data)}")
+            parts.append(f"{head}{fid}{data.hex().upper()}\n")
+        self._stream.write("".join(parts))
+        self.lines_written += len(parts)
 
     def write_frame(self, frame: LogFrame) -> None:
         """Write a frame read from another log (keeps its time stamp and channel)."""
