@@ -67,6 +67,11 @@ _EXT_MAX = 0x1FFFFFFF
 _MAX_DATA = 8
 _TIMESTAMP_RE = re.compile(r"\(([0-9]{1,10}(?:\.[0-9]{0,9})?)\)")
 _HEX_RE = re.compile(r"[0-9A-Fa-f]*")
+# parse_line's fast path: the line candump -L writes (single spaces, a dotted stamp, 3 or 8 id digits, whole
+# data bytes), matched once; anything else (and an id or stamp out of range) takes the checked path
+_PLAIN_LINE_RE = re.compile(
+    r"\(([0-9]{1,10}\.[0-9]{0,9})\) (\S+) ([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#((?:[0-9A-Fa-f]{2}){0,8})"
+)
 MAX_TIMESTAMP = 7258118400.0  # 2200-01-01T00:00:00Z: later stamps are absurd
 MAX_LINE_CHARS = 256  # a candump -L line is at most ~70 characters
 MAX_LOG_BYTES = 16 << 30  # ~12 days of the four sensor messages at their rates
@@ -144,6 +149,14 @@ def parse_line(line: str, line_no: int = 0) -> LogFrame:
     frames are rejected; so is a time stamp with more than 10 + 9 digits, a sign, or after 2200
     (``BadTimestampError``, a ValueError).
     """
+    plain = _PLAIN_LINE_RE.fullmatch(line)
+    if plain is not None:
+        ts_s, channel, id_s, data_s = plain.groups()
+        timestamp = float(ts_s)
+        frame_id = int(id_s, 16)
+        extended = len(id_s) == 8
+        if timestamp <= MAX_TIMESTAMP and frame_id <= (_EXT_MAX if extended else _STD_MAX) and "#" not in channel:
+            return LogFrame(timestamp, channel, frame_id, bytes.fromhex(data_s), line_no, extended, False)
     fields = line.split()
     if not fields:
         raise ValueError("empty line")
