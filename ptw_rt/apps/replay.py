@@ -260,13 +260,12 @@ def replay_log(
                 csv.write("time," + ",".join(ESTIMATE_NAMES) + "\n")
             except OSError as exc:
                 raise _output_error(csv_path, exc) from None
-        write = writer.write
+        write_cycle = writer.write_cycle
 
         def on_frames(now: float, out: list[tuple[int, bytes]]) -> None:
             nonlocal frames_out
             try:
-                for fid, data in out:
-                    write(now, fid, data)
+                write_cycle(now, out)
             except OSError as exc:
                 raise _output_error(out_log, exc) from None
             frames_out += len(out)

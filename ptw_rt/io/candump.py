@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, NamedTuple
@@ -67,6 +67,11 @@ _EXT_MAX = 0x1FFFFFFF
 _MAX_DATA = 8
 _TIMESTAMP_RE = re.compile(r"\(([0-9]{1,10}(?:\.[0-9]{0,9})?)\)")
 _HEX_RE = re.compile(r"[0-9A-Fa-f]*")
+# parse_line's fast path: the line candump -L writes (single spaces, a dotted stamp, 3 or 8 id digits, whole
+# data bytes), matched once; anything else (and an id or stamp out of range) takes the checked path
+_PLAIN_LINE_RE = re.compile(
+    r"\(([0-9]{1,10}\.[0-9]{0,9})\) (\S+) ([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#((?:[0-9A-Fa-f]{2}){0,8})"
+)
 MAX_TIMESTAMP = 7258118400.0  # 2200-01-01T00:00:00Z: later stamps are absurd
 MAX_LINE_CHARS = 256  # a candump -L line is at most ~70 characters
 MAX_LOG_BYTES = 16 << 30  # ~12 days of the four sensor messages at their rates
@@ -144,6 +149,14 @@ def parse_line(line: str, line_no: int = 0) -> LogFrame:
     frames are rejected; so is a time stamp with more than 10 + 9 digits, a sign, or after 2200
     (``BadTimestampError``, a ValueError).
     """
+    plain = _PLAIN_LINE_RE.fullmatch(line)
+    if plain is not None:
+        ts_s, channel, id_s, data_s = plain.groups()
+        timestamp = float(ts_s)
+        frame_id = int(id_s, 16)
+        extended = len(id_s) == 8
+        if timestamp <= MAX_TIMESTAMP and frame_id <= (_EXT_MAX if extended else _STD_MAX) and "#" not in channel:
+            return LogFrame(timestamp, channel, frame_id, bytes.fromhex(data_s), line_no, extended, False)
     fields = line.split()
     if not fields:
         raise ValueError("empty line")
@@ -208,6 +221,8 @@ class CandumpWriter:
         format_line(0.0, channel, 0, b"")  # validate the channel name early
         self.channel = channel
         self.lines_written = 0
+        # write_cycle: frame id -> its " ID#" text (checked once by format_line), not formatted per frame
+        self._id_text: dict[int, str] = {}
 
     def write(
         self,
@@ -220,6 +235,24 @@ class CandumpWriter:
     ) -> None:
         self._stream.write(format_line(timestamp, channel or self.channel, frame_id, data, extended=extended) + "\n")
         self.lines_written += 1
+
+    def write_cycle(self, timestamp: float, frames: Sequence[tuple[int, bytes]]) -> None:
+        """All frames of one cycle, stamped ``timestamp``, in one write: the same lines as ``write`` per frame
+        (byte for byte), at a fraction of the cost (replay writes ~3 frames per 10 ms of log)."""
+        head = format_line(timestamp, self.channel, 0, b"")  # checks the stamp once for the whole cycle
+        head = head[: head.index(" ", head.index(" ") + 1)]  # "(stamp) channel"
+        ids = self._id_text
+        parts = []
+        for frame_id, data in frames:
+            fid = ids.get(frame_id)
+            if fid is None:
+                line = format_line(timestamp, self.channel, frame_id, b"")  # range check, as write does
+                fid = ids[frame_id] = line[len(head) :]  # " ID#"
+            if len(data) > _MAX_DATA:
+                raise ValueError(f"classic CAN payload is at most 8 bytes, got {len(data)}")
+            parts.append(f"{head}{fid}{data.hex().upper()}\n")
+        self._stream.write("".join(parts))
+        self.lines_written += len(parts)
 
     def write_frame(self, frame: LogFrame) -> None:
         """Write a frame read from another log (keeps its time stamp and channel)."""

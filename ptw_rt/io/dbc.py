@@ -122,6 +122,8 @@ class MessageLayout:
         "plain",
         "_fields",
         "_crc_seed",
+        "pack",
+        "unpack",
     )
 
     def __init__(
@@ -157,13 +159,19 @@ class MessageLayout:
         )
         # the CRC register after the Data ID: the same for every frame of this message
         self._crc_seed = None if crc_signal is None else profile11_seed(self.frame_id)
+        if self.plain:  # this message's own straight-line pack and unpack (see _plain_codec)
+            self.pack, self.unpack = _plain_codec(self.name, self._fields, self.length, self._crc_seed)
+        else:
+            self.pack, self.unpack = self._pack_reference, self._unpack_reference
 
     @property
     def counter_modulus(self) -> int:
         return self.counter_max + 1
 
-    def pack(self, values: Sequence[float]) -> bytes:
-        """The frame's bytes from the physical values of all signals in DBC order (counter included, CRC ignored)."""
+    def _pack_reference(self, values: Sequence[float]) -> bytes:
+        """The frame's bytes from the physical values of all signals in DBC order (counter included, CRC ignored).
+
+        ``pack`` is this, or for a plain message the same steps unrolled by ``_plain_codec`` (tested equal)."""
         if not self.plain:
             return self._pack_generic(values)
         word = 0
@@ -197,9 +205,11 @@ class MessageLayout:
         buf[0] = profile11_crc_seeded(self._crc_seed, data)
         return bytes(buf)
 
-    def unpack(self, data: bytes) -> list[float]:
+    def _unpack_reference(self, data: bytes) -> list[float]:
         """Physical values of all signals in DBC order (``raw * scale + offset``). ``data`` must be ``length``
-        bytes (``FrameCodec.decode`` checks it); cantools errors of the generic path propagate."""
+        bytes (``FrameCodec.decode`` checks it); cantools errors of the generic path propagate.
+
+        ``unpack`` is this, or for a plain message the same steps unrolled by ``_plain_codec`` (tested equal)."""
         if not self.plain:
             raw = self.message.decode(bytes(data), decode_choices=False, scaling=True)
             return [float(raw[n]) for n in self.names]
@@ -211,6 +221,52 @@ class MessageLayout:
                 raw -= full
             out.append(raw * scale + offset)
         return out
+
+
+def _plain_codec(name: str, fields: tuple, length: int, crc_seed: int | None) -> tuple:
+    """``(pack, unpack)`` of one plain message (Intel integers only) as straight-line Python generated from its
+    fields: the same operations in the same order as ``MessageLayout._pack_reference`` / ``_unpack_reference``
+    (byte-identical, tested), without the per-signal loop, tuple unpacking and zip that cost more than the
+    arithmetic itself. Replay packs ~3 and unpacks ~3 frames per 10 ms cycle; the daemon gains the same.
+    The field constants are default arguments: local-variable reads in the generated functions."""
+    n = len(fields)
+    constants: dict[str, object] = {"crc_seed": crc_seed, "crc": profile11_crc_seeded}
+    pack = ["word = 0"]
+    unpack = ["word = int.from_bytes(data, 'little')"]
+    for k, (start, mask, sign, full, scale, offset, lo, hi, neutral) in enumerate(fields):
+        constants.update({f"lo{k}": lo, f"hi{k}": hi, f"neutral{k}": neutral, f"scale{k}": scale})
+        constants[f"offset{k}"] = offset
+        pack += [
+            f"v = v{k}",
+            f"if v < lo{k}: v = lo{k}",
+            f"elif v > hi{k}: v = hi{k}",
+            f"elif v != v: v = neutral{k}",  # NaN
+            f"word |= (round((v - offset{k}) / scale{k}) & {mask}) << {start}",
+        ]
+        unpack.append(f"raw = (word >> {start}) & {mask}")
+        if sign:
+            unpack.append(f"if raw & {sign}: raw -= {full}")
+        unpack.append(f"r{k} = raw * scale{k} + offset{k}")
+    if crc_seed is None:
+        pack.append(f"return word.to_bytes({length}, 'little')")
+    else:  # byte 0 replaced by the CRC, as protect_p11 does on the frame
+        pack.append(
+            f"return ((word & ~0xFF) | crc(crc_seed, word.to_bytes({length}, 'little'))).to_bytes({length}, 'little')"
+        )
+    unpack.append("return [" + ", ".join(f"r{k}" for k in range(n)) + "]")
+    defaults = ", ".join(f"{c}={c}" for c in constants)
+    unpacked = ", ".join(f"v{k}" for k in range(n)) + ("," if n == 1 else "")
+    source = (
+        f"def pack(values, *, {defaults}):\n"
+        f"    if len(values) != {n}: raise ValueError('{name}: {n} values expected, got %d' % len(values))\n"
+        f"    {unpacked} = values\n"
+        + "".join(f"    {line}\n" for line in pack)
+        + f"def unpack(data, *, {defaults}):\n"
+        + "".join(f"    {line}\n" for line in unpack)
+    )
+    namespace = dict(constants)
+    exec(compile(source, f"<dbc codec {name}>", "exec"), namespace)  # noqa: S102 - source built from the DBC's numbers
+    return namespace["pack"], namespace["unpack"]
 
 
 def _as_counter(value: object) -> int | None:

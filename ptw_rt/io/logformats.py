@@ -36,7 +36,7 @@ import re
 import struct
 import sys
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
@@ -830,6 +830,11 @@ class _PycanWriter:
             )
         )
         self.lines_written += 1
+
+    def write_cycle(self, timestamp: float, frames: Sequence[tuple[int, bytes]]) -> None:
+        """All frames of one cycle (``CandumpWriter.write_cycle``'s interface)."""
+        for frame_id, data in frames:
+            self.write(timestamp, frame_id, data)
 
     def flush(self) -> None:
         pass
