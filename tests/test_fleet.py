@@ -145,3 +145,12 @@ def importlib_available(name: str) -> bool:
     import importlib.util
 
     return importlib.util.find_spec(name) is not None
+
+
+@pytest.mark.parametrize("address", ["not a url", "tcp://", "tcp://127.0.0.1:1"])
+def test_a_bad_or_unreachable_scheduler_is_one_line(tree, tmp_path, address):
+    pytest.importorskip("dask.distributed")
+    base, top, _ = tree
+    proc = _cli(["replay", top, "--out", tmp_path / "o", "--dask", address, "--no-progress"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Dask scheduler" in proc.stderr, proc.stderr

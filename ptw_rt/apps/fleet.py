@@ -91,6 +91,8 @@ def _dask_client(address: str, workers: int):
         return Client(cluster), cluster
     try:
         return Client(address, timeout="10s"), None
+    except ValueError as exc:  # not an address dask can parse ("missing port number", unknown protocol)
+        raise UserFacingError(f"--dask {address}: not a Dask scheduler address ({exc}); e.g. tcp://host:8786") from None
     except (OSError, TimeoutError) as exc:
         raise UserFacingError(f"--dask {address}: cannot reach the Dask scheduler ({exc})") from None
 
