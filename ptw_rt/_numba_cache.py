@@ -15,7 +15,7 @@ import shutil
 import time
 from pathlib import Path
 
-JITTED_PACKAGES = ("core", "sim")
+JITTED_PACKAGES = ("core", "edge", "sim")
 _PREFIX = "src-"
 _STALE_AFTER_S = 3600.0
 _ENV = "NUMBA_CACHE_DIR"

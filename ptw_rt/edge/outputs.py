@@ -1,17 +1,16 @@
 """Estimates -> the estimator's output frames (EST_* messages of the DBC), for the shared cycle.
 
 Every cycle: EST_Roll, EST_RiderTorque and EST_Lateral (100 Hz); every ``period`` cycles (10 Hz for a 10 ms
-cycle) EST_Status and EST_TireStiffness. This module maps Estimates to signal values (validity bits from
-E_VALID and the mode, a non-finite estimate sent as the signal's neutral value and marked invalid, the rolling
-counters); the bytes come from the codec's compiled message (``MessageLayout.pack``: bit layout, clipping,
-rounding and E2E Profile 11 CRC). ``tests/test_outputs.py`` checks the frames are byte-identical to
+cycle) EST_Status, EST_TireStiffness, EST_TireConfidence and EST_Plausibility. This module says which Estimates
+slot and which V_* bit every signal of every EST_* message carries (``SIGNAL_MAP``) and turns that, with the
+DBC's bit layouts, into the plan of the compiled encoder (``ptw_rt.edge.encoding``), which does the per-frame
+work for the daemon and for replay alike. ``tests/test_outputs.py`` checks the frames are byte-identical to
 ``FrameCodec.encode`` and to cantools.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, MutableMapping
 
 import numpy as np
 
@@ -38,8 +37,6 @@ from ptw_rt.core.layout import (
     E_TYRE_NIS,
     E_TYRE_SCALE,
     E_VALID,
-    MODE_FAULT,
-    MODE_INIT,
     V_CAMBER,
     V_CORNERING,
     V_FY_FRONT,
@@ -51,7 +48,9 @@ from ptw_rt.core.layout import (
     V_STEER,
     V_STEER_RATE,
 )
-from ptw_rt.io.dbc import FrameCodec
+from ptw_rt.edge import encoding as en
+from ptw_rt.io.dbc import FrameCodec, MessageLayout
+from ptw_rt.io.e2e import profile11_seed
 
 __all__ = ["FAST_MESSAGES", "SLOW_MESSAGES", "OutputEncoder", "SIGNAL_MAP"]
 
@@ -97,8 +96,113 @@ _SLOW_SIGNAL_MESSAGES = tuple(name for name in SLOW_MESSAGES if name in SIGNAL_M
 _STATUS_SIGNALS = ("Mode", "SensorTimeouts", "ReasonBits", "OverrunCount", "CycleTimeUs")
 
 
+OUTPUT_ORDER = (*FAST_MESSAGES, "EST_Status", *_SLOW_SIGNAL_MESSAGES)  # the order of a cycle's frames
+_STATUS_ROLES = dict(
+    zip(
+        (*_STATUS_SIGNALS, "EST_Status_Valid"),
+        (
+            en.ROLE_MODE,
+            en.ROLE_SENSOR_TIMEOUTS,
+            en.ROLE_REASON_BITS,
+            en.ROLE_OVERRUN_COUNT,
+            en.ROLE_CYCLE_TIME_US,
+            en.ROLE_STATUS_VALID,
+        ),
+        strict=True,
+    )
+)
+assert len(OUTPUT_ORDER) == en.N_OUTPUTS
+
+
+def _signal_roles(name: str, layout: MessageLayout) -> dict[str, tuple[int, int, int]]:
+    """signal -> (role, Estimates index, V_* bit) for every signal of output message ``name``."""
+    roles: dict[str, tuple[int, int, int]] = {layout.counter_signal: (en.ROLE_COUNTER, 0, 0)}
+    if layout.crc_signal:
+        roles[layout.crc_signal] = (en.ROLE_CRC, 0, 0)
+    if name == "EST_Status":
+        roles.update({signal: (role, 0, 0) for signal, role in _STATUS_ROLES.items()})
+        return roles
+    roles[f"{name}_Valid"] = (en.ROLE_MESSAGE_VALID, 0, 0)
+    for signal, e_index, vbit in SIGNAL_MAP[name]:
+        roles[signal] = (en.ROLE_ANALOG, e_index, vbit)
+        if f"{signal}_Valid" in layout.index:
+            roles[f"{signal}_Valid"] = (en.ROLE_FLAG, 0, vbit)
+    if name == "EST_TireStiffness":
+        for vname, vbit in _STIFFNESS_VALID:
+            roles[vname] = (en.ROLE_FLAG, 0, vbit)
+    return roles
+
+
+def encoder_plan(codec: FrameCodec, sample_time: float) -> tuple[np.ndarray, tuple[MessageLayout, ...]]:
+    """The compiled encoder's plan (``encoding.PLAN``, messages in ``OUTPUT_ORDER``) and their layouts.
+    Every signal of every output message must have a source (ValueError otherwise)."""
+    plan = np.zeros(en.PLAN_SIZE)
+    layouts = []
+    for m, name in enumerate(OUTPUT_ORDER):
+        layout = codec.layout(name)
+        layouts.append(layout)
+        roles = _signal_roles(name, layout)
+        unmapped = set(layout.names) - set(roles)
+        if unmapped:
+            raise ValueError(f"{name}: signals {sorted(unmapped)} have no source in the Estimates")
+        if len(layout.signals) > en.MAX_SIGNALS:
+            raise ValueError(f"{name}: more than {en.MAX_SIGNALS} signals")
+        b = m * en.BLOCK
+        plan[b + en.EM_FRAME_ID] = layout.frame_id
+        plan[b + en.EM_LENGTH] = layout.length
+        plan[b + en.EM_PERIOD] = max(1, round(codec.cycle_time_s(name) / sample_time))
+        plan[b + en.EM_CRC_SEED] = -1 if layout.crc_signal is None else profile11_seed(layout.frame_id)
+        plan[b + en.EM_MODULUS] = codec.counter_modulus(name)
+        plan[b + en.EM_N_SIGNALS] = len(layout.signals)
+        plan[b + en.EM_GROUP] = sum({vbit for role, _, vbit in roles.values() if role == en.ROLE_ANALOG})
+        if name == "EST_TireStiffness":
+            plan[b + en.EM_GROUP] = int(plan[b + en.EM_GROUP]) | sum(v for _, v in _STIFFNESS_VALID)
+        plan[b + en.EM_PLAIN] = 1.0 if layout.plain else 0.0
+        for j, s in enumerate(layout.signals):
+            row = b + en.MSG_SIZE + j * en.SIGNAL_SIZE
+            role, source, vbit = roles[s.name]
+            plan[row + en.ES_ROLE] = role
+            plan[row + en.ES_SOURCE] = source
+            plan[row + en.ES_VBIT] = vbit
+            plan[row + en.ES_START] = s.start
+            plan[row + en.ES_MASK] = (1 << s.length) - 1
+            plan[row + en.ES_SCALE] = s.scale
+            plan[row + en.ES_OFFSET] = s.offset
+            plan[row + en.ES_LO] = s.lo
+            plan[row + en.ES_HI] = s.hi
+            plan[row + en.ES_NEUTRAL] = s.neutral
+    return plan, tuple(layouts)
+
+
+_MASK64 = (1 << 64) - 1
+
+
+class _Counters(MutableMapping):
+    """message name -> a column of the compiled encoder's state, as a dict (read and set by name)."""
+
+    def __init__(self, state: np.ndarray, offset: int) -> None:
+        self._state, self._offset = state, offset
+        self._index = {name: m for m, name in enumerate(OUTPUT_ORDER)}
+
+    def __getitem__(self, name: str) -> int:
+        return int(self._state[self._offset + self._index[name]])
+
+    def __setitem__(self, name: str, value: int) -> None:
+        self._state[self._offset + self._index[name]] = int(value)
+
+    def __delitem__(self, name: str) -> None:
+        raise TypeError("the output messages are fixed")
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(OUTPUT_ORDER)
+
+    def __len__(self) -> int:
+        return len(OUTPUT_ORDER)
+
+
 class OutputEncoder:
-    """Estimates of one cycle -> the list of ``(frame_id, data)`` to send in that cycle.
+    """Estimates of one cycle -> the list of ``(frame_id, data)`` to send in that cycle, through the compiled
+    encoder (``ptw_rt.edge.encoding``). ``plan``/``state`` are its arrays (replay's compiled loop runs on them).
 
     ``sample_time`` is the estimator's cycle (s); the slow messages go out every
     ``round(cycle_time_s / sample_time)`` cycles, starting with cycle index 0.
@@ -107,73 +211,24 @@ class OutputEncoder:
     def __init__(self, codec: FrameCodec, sample_time: float = 0.01) -> None:
         self.codec = codec
         self.sample_time = float(sample_time)
-        # message -> (layout, values list reused every frame, ((Estimates index, V bit, position), ...),
-        # ((V bit, position of its *_Valid signal), ...), position of <msg>_Valid, V bits of the message's group,
-        # counter position, counter modulus): everything a frame needs, resolved once, not per frame
-        self._plans: dict[str, tuple] = {}
-        for name, slots in SIGNAL_MAP.items():
-            layout = codec.layout(name)
-            pos = layout.index
-            analog = tuple((e_index, vbit, pos[signal]) for signal, e_index, vbit in slots)
-            vflags = [(vbit, pos[f"{signal}_Valid"]) for signal, _, vbit in slots if f"{signal}_Valid" in pos]
-            group = 0
-            for _, _, vbit in slots:
-                group |= vbit
-            if name == "EST_TireStiffness":
-                for vname, vbit in _STIFFNESS_VALID:
-                    vflags.append((vbit, pos[vname]))
-                    group |= vbit
-            covered = {pos[f"{name}_Valid"], pos[layout.counter_signal]} | {p for *_, p in analog}
-            covered |= {p for _, p in vflags} | ({pos[layout.crc_signal]} if layout.crc_signal else set())
-            unmapped = set(layout.names) - {layout.names[p] for p in covered}
-            if unmapped:
-                raise ValueError(f"{name}: signals {sorted(unmapped)} have no source in the Estimates")
-            self._plans[name] = (
-                layout,
-                [0.0] * len(layout.names),
-                analog,
-                tuple(vflags),
-                pos[f"{name}_Valid"],
-                group,
-                pos[layout.counter_signal],
-                layout.counter_modulus,
-            )
-        self._status = codec.layout("EST_Status")
-        self._status_pos = tuple(self._status.index[n] for n in (*_STATUS_SIGNALS, "EST_Status_Valid"))
-        self._status_counter = self._status.index[self._status.counter_signal]
-        names = (*SIGNAL_MAP, "EST_Status")
-        self._modulus = {name: codec.counter_modulus(name) for name in names}
-        self.counters = dict.fromkeys(names, 0)
-        self.frames_sent = dict.fromkeys(names, 0)
-        self.periods = {name: max(1, round(codec.cycle_time_s(name) / self.sample_time)) for name in names}
+        self.plan, self.layouts = encoder_plan(codec, self.sample_time)
+        self.state = np.zeros(en.STATE.size)
+        self.counters = _Counters(self.state, en.EN_COUNTERS)  # the next counter of each message
+        self.frames_sent = _Counters(self.state, en.EN_SENT)
+        self.periods = {name: int(self.plan[m * en.BLOCK + en.EM_PERIOD]) for m, name in enumerate(OUTPUT_ORDER)}
+        self._status_index = OUTPUT_ORDER.index("EST_Status")
+        # per message: (frame id, length, plain, layout) to turn the encoder's rows into frames
+        self._frame_of = tuple((layout.frame_id, layout.length, layout.plain, layout) for layout in self.layouts)
+        self._messages = np.zeros(en.N_OUTPUTS, dtype=np.int64)
+        self._words = np.zeros(en.N_OUTPUTS, dtype=np.int64)
+        self._values = np.zeros((en.N_OUTPUTS, en.MAX_SIGNALS))
 
-    # ------------------------------------------------------------------ helpers
-
-    def _next(self, name: str) -> int:
-        c = self.counters[name]
-        self.counters[name] = c + 1 if c + 1 < self._modulus[name] else 0
-        self.frames_sent[name] += 1
-        return c
-
-    def _signal_frame(self, name: str, est: list[float], mode_ok: bool, valid: int) -> tuple[int, bytes]:
-        layout, values, analog, vflags, msg_valid_pos, group, counter_pos, modulus = self._plans[name]
-        for index, vbit, p in analog:
-            v = est[index]
-            if v - v != 0.0:  # NaN or inf: never a number on the wire; the neutral value, marked invalid
-                valid &= ~vbit
-                v = math.nan
-            values[p] = v
-        for vbit, p in vflags:
-            values[p] = 1.0 if valid & vbit else 0.0
-        # a message of diagnostics (no V_* bit in its group) is valid whenever the estimator runs
-        values[msg_valid_pos] = 1.0 if mode_ok and (group == 0 or valid & group) else 0.0
-        # the message's rolling counter (as _next, inline)
-        counters = self.counters
-        c = counters[name]
-        counters[name] = c + 1 if c + 1 < modulus else 0
-        self.frames_sent[name] += 1
-        values[counter_pos] = c
-        return layout.frame_id, layout.pack(values)
+    def frame(self, m: int, word: int, values: np.ndarray) -> tuple[int, bytes]:
+        """The ``(frame id, data)`` of plan message ``m`` from the encoder's word (plain) or values (not plain)."""
+        frame_id, length, plain, layout = self._frame_of[m]
+        if plain:
+            return frame_id, (word & _MASK64).to_bytes(8, "little")[:length]
+        return frame_id, layout.pack(values[: len(layout.signals)].tolist())
 
     def status_frame(
         self,
@@ -189,27 +244,20 @@ class OutputEncoder:
         ``reasons``: REASON_* bits of the process itself (overrun, send failure), OR-ed into ``ReasonBits``
         beside the estimator's own.
         """
-        layout = self._status
-        mode = float(estimates[E_MODE])
-        core_reasons = float(estimates[E_REASONS])
-        values = [0.0] * len(layout.names)
-        for p, v in zip(
-            self._status_pos,
-            (
-                mode if math.isfinite(mode) else float(MODE_FAULT),
-                float(int(stale_bits) & 0xF),
-                float((int(core_reasons) if math.isfinite(core_reasons) else 0) & 0xFFFF | reasons & 0xFFFF),
-                float(min(int(status.get("overrun_count", 0)), 65535)),
-                float(min(int(status.get("cycle_time_us", 0)), 65535)),
-                1.0 if valid else 0.0,
-            ),
-            strict=True,
-        ):
-            values[p] = v
-        values[self._status_counter] = self._next("EST_Status")
-        return layout.frame_id, layout.pack(values)
-
-    # ------------------------------------------------------------------ per cycle
+        m = self._status_index
+        word = en.encode_message(
+            self.plan,
+            self.state,
+            m,
+            estimates,
+            int(stale_bits),
+            int(reasons),
+            int(status.get("overrun_count", 0)),
+            int(status.get("cycle_time_us", 0)),
+            bool(valid),
+            self._values[0],
+        )
+        return self.frame(m, word, self._values[0])
 
     def frames(
         self,
@@ -225,18 +273,24 @@ class OutputEncoder:
         ``stale_bits``: MSG_* bits of the inputs timed out (``InputTracker.stale_bits()``), EST_Status.SensorTimeouts.
         ``reasons``: REASON_* bits of the process (overrun, send failure) for EST_Status.ReasonBits.
         """
-        est = estimates.tolist()
-        mode = est[E_MODE]
-        mode_ok = mode == mode and int(mode) not in (MODE_INIT, MODE_FAULT)
-        v = est[E_VALID]
-        valid = int(v) if v == v else 0
-        periods = self.periods
-        out = [
-            self._signal_frame(name, est, mode_ok, valid) for name in FAST_MESSAGES if cycle_index % periods[name] == 0
+        status = status or {}
+        n = en.encode_cycle(
+            self.plan,
+            self.state,
+            estimates,
+            int(cycle_index),
+            int(stale_bits),
+            int(reasons),
+            int(status.get("overrun_count", 0)),
+            int(status.get("cycle_time_us", 0)),
+            self._messages,
+            self._words,
+            self._values,
+            0,
+        )
+        frame = self.frame
+        values = self._values
+        return [
+            frame(m, w, values[i])
+            for i, (m, w) in enumerate(zip(self._messages[:n].tolist(), self._words[:n].tolist()))
         ]
-        if cycle_index % periods["EST_Status"] == 0:
-            out.append(self.status_frame(estimates, stale_bits, status or {}, reasons=reasons))
-        for name in _SLOW_SIGNAL_MESSAGES:
-            if cycle_index % periods[name] == 0:
-                out.append(self._signal_frame(name, est, mode_ok, valid))
-        return out

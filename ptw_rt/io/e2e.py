@@ -18,6 +18,7 @@ from enum import IntEnum
 
 __all__ = [
     "COUNTER_MAX",
+    "CRC8_TABLE",
     "CounterChecker",
     "CRC8_POLY",
     "P11Checker",
@@ -48,6 +49,7 @@ def _make_table(poly: int) -> tuple[int, ...]:
 
 
 _TABLE = _make_table(CRC8_POLY)
+CRC8_TABLE = _TABLE  # for compiled code (``ptw_rt.edge.encoding``): the same table
 
 
 def _crc8_raw(data: bytes | bytearray | memoryview, crc: int) -> int:

@@ -1,0 +1,194 @@
+"""The compiled input tracker: decoded input frames -> the cycle's Sample, with the health of every input.
+
+One implementation for every caller: the daemon calls ``track_values`` once per received frame (through
+``ptw_rt.edge.inputs.InputTracker``), replay calls the same functions inside its compiled loop over a whole
+log (``ptw_rt.edge.drive``). The rules (``InputTracker``'s docstring) per input message ``k``:
+
+* ``track_values``: a decoded frame (or the signals of another source, ``counted`` False): its rolling counter
+  checked (skipped or repeated -> counter_jumps, REASON_COUNTER_JUMPS, the message suspect this cycle), every
+  signal whose raw field can leave its DBC range checked (outside or NaN -> out_of_range, REASON_OUT_OF_RANGE,
+  the frame dropped), the signals copied into the Sample's slots, the message fresh;
+* ``track_decode_error``: a frame that could not be decoded; ``track_unknown``: someone else's frame;
+* ``track_fill``: the Sample at the cycle's time: stale inputs (no valid frame within their timeout, a
+  fresh -> stale transition counted), the IMU's age, the cycle's fresh/reason/suspect bits, which then restart.
+
+State and parameters are flat float64 arrays with the named layouts below (bits and counts held as floats:
+exact below 2**53). Nothing here allocates or raises.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ptw_rt.core.layout import (
+    REASON_COUNTER_JUMPS,
+    REASON_DECODE_ERRORS,
+    REASON_OUT_OF_RANGE,
+    S_FRESH,
+    S_IMU_AGE,
+    S_INPUT_REASONS,
+    S_STALE,
+    S_SUSPECT,
+    S_TIME,
+    SAMPLE_SIZE,
+)
+from ptw_rt.core.stage import Layout
+
+N_INPUTS = 4  # IMU_Rates, IMU_Accel, Steer_Encoder, GPS_Velocity (``ptw_rt.edge.inputs.SIGNAL_SLOTS`` order)
+MAX_SIGNALS = 8  # signals per input message the tables hold
+MAX_IMU_AGE = 0.05  # s: the Sample's IMU age is bounded (beyond a few cycles the input is stale)
+NO_COUNTER = -1.0  # TR_COUNTER_LAST before the first counter after construction or a restart
+
+STATE = Layout(
+    "TR_",
+    row=SAMPLE_SIZE,  # the newest valid value of every input signal, kept from cycle to cycle
+    last_valid=N_INPUTS,  # s, time of the newest valid frame (-inf: none)
+    stale=N_INPUTS,  # 1 while the input is stale (at the last fill)
+    frames=N_INPUTS,  # cumulative counts, per input
+    decode_errors=N_INPUTS,
+    out_of_range=N_INPUTS,
+    counter_jumps=N_INPUTS,
+    timeouts=N_INPUTS,  # fresh -> stale transitions
+    counter_last=N_INPUTS,  # the last rolling counter seen (NO_COUNTER: none yet)
+    fresh=1,  # MSG_* bits of this cycle
+    reasons=1,  # REASON_* bits of this cycle
+    suspect=1,  # MSG_* bits with a broken counter this cycle
+    stale_bits=1,  # MSG_* bits stale at the last fill
+    unknown_ids=1,  # frames of identifiers that are not inputs
+)
+(
+    TR_ROW,
+    TR_LAST_VALID,
+    TR_STALE,
+    TR_FRAMES,
+    TR_DECODE_ERRORS,
+    TR_OUT_OF_RANGE,
+    TR_COUNTER_JUMPS,
+    TR_TIMEOUTS,
+    TR_COUNTER_LAST,
+    TR_FRESH,
+    TR_REASONS,
+    TR_SUSPECT,
+    TR_STALE_BITS,
+    TR_UNKNOWN_IDS,
+) = STATE.offsets
+
+PARAMS = Layout(
+    "TP_",
+    timeout=N_INPUTS,  # s without a valid frame before the input is stale
+    bit=N_INPUTS,  # its MSG_* bit
+    counter_pos=N_INPUTS,  # position of its rolling counter among its signals, -1: none
+    modulus=N_INPUTS,  # of that counter
+    n_signals=N_INPUTS,
+    check=N_INPUTS * MAX_SIGNALS,  # [k * MAX_SIGNALS + j]: 1 if signal j's raw field can decode outside [lo, hi]
+    lo=N_INPUTS * MAX_SIGNALS,
+    hi=N_INPUTS * MAX_SIGNALS,
+    slot=N_INPUTS * MAX_SIGNALS,  # Sample index signal j is copied to, -1: none
+    imu=1,  # the input whose age is the Sample's IMU age
+)
+TP_TIMEOUT, TP_BIT, TP_COUNTER_POS, TP_MODULUS, TP_N_SIGNALS, TP_CHECK, TP_LO, TP_HI, TP_SLOT, TP_IMU = PARAMS.offsets
+
+# the cumulative counts of ``InputTracker.summary``, with their state offsets
+COUNTS = (
+    ("frames", TR_FRAMES),
+    ("decode_errors", TR_DECODE_ERRORS),
+    ("out_of_range", TR_OUT_OF_RANGE),
+    ("counter_jumps", TR_COUNTER_JUMPS),
+    ("timeouts", TR_TIMEOUTS),
+)
+
+
+def initial_state() -> np.ndarray:
+    state = np.zeros(STATE.size)
+    track_restart(state)
+    state[TR_SUSPECT] = 0.0
+    return state
+
+
+@njit(cache=True)
+def track_restart(state: np.ndarray) -> None:
+    """Forget every input's values, freshness and rolling counter (a new segment of a log); the cumulative
+    counts and the suspect bits are kept."""
+    state[TR_ROW : TR_ROW + SAMPLE_SIZE] = 0.0
+    bits = 0
+    for k in range(N_INPUTS):
+        state[TR_STALE + k] = 1.0  # stale again without a timeout transition: nothing has been received yet
+        state[TR_LAST_VALID + k] = -math.inf
+        state[TR_COUNTER_LAST + k] = NO_COUNTER
+        bits |= 1 << k
+    state[TR_STALE_BITS] = bits
+    state[TR_FRESH] = 0.0
+    state[TR_REASONS] = 0.0
+
+
+@njit(cache=True)
+def track_values(state: np.ndarray, params: np.ndarray, k: int, t: float, values, counted: bool) -> None:
+    """Input ``k``'s decoded signals (``values[j]``, DBC order) stamped ``t``; ``counted``: a CAN frame, whose
+    rolling counter is checked."""
+    state[TR_FRAMES + k] += 1.0
+    bit = int(params[TP_BIT + k])
+    pos = int(params[TP_COUNTER_POS + k])
+    if counted and pos >= 0:
+        counter = int(values[pos])
+        last = state[TR_COUNTER_LAST + k]
+        state[TR_COUNTER_LAST + k] = counter
+        if last != NO_COUNTER and (counter - int(last)) % int(params[TP_MODULUS + k]) != 1:
+            state[TR_COUNTER_JUMPS + k] += 1.0
+            state[TR_REASONS] = int(state[TR_REASONS]) | REASON_COUNTER_JUMPS
+            state[TR_SUSPECT] = int(state[TR_SUSPECT]) | bit  # the payload of a broken sequence may be garbage
+    n = int(params[TP_N_SIGNALS + k])
+    base = k * MAX_SIGNALS
+    for j in range(n):
+        if params[TP_CHECK + base + j] != 0.0:
+            v = values[j]
+            if not params[TP_LO + base + j] <= v <= params[TP_HI + base + j]:  # also NaN
+                state[TR_OUT_OF_RANGE + k] += 1.0
+                state[TR_REASONS] = int(state[TR_REASONS]) | REASON_OUT_OF_RANGE
+                return
+    for j in range(n):
+        slot = int(params[TP_SLOT + base + j])
+        if slot >= 0:
+            state[TR_ROW + slot] = values[j]
+    state[TR_LAST_VALID + k] = t
+    state[TR_FRESH] = int(state[TR_FRESH]) | bit
+
+
+@njit(cache=True)
+def track_decode_error(state: np.ndarray, k: int) -> None:
+    state[TR_DECODE_ERRORS + k] += 1.0
+    state[TR_REASONS] = int(state[TR_REASONS]) | REASON_DECODE_ERRORS
+
+
+@njit(cache=True)
+def track_unknown(state: np.ndarray) -> None:
+    state[TR_UNKNOWN_IDS] += 1.0
+
+
+@njit(cache=True)
+def track_fill(state: np.ndarray, params: np.ndarray, sample: np.ndarray, now: float) -> None:
+    """Write the cycle's Sample at time ``now`` and start collecting the next cycle."""
+    stale_bits = 0
+    for k in range(N_INPUTS):
+        stale = now - state[TR_LAST_VALID + k] > params[TP_TIMEOUT + k]
+        if stale and state[TR_STALE + k] == 0.0:
+            state[TR_TIMEOUTS + k] += 1.0
+        state[TR_STALE + k] = 1.0 if stale else 0.0
+        if stale:
+            stale_bits |= int(params[TP_BIT + k])
+    state[TR_STALE_BITS] = stale_bits
+    row = TR_ROW
+    state[row + S_TIME] = now
+    state[row + S_FRESH] = state[TR_FRESH]
+    state[row + S_STALE] = stale_bits
+    state[row + S_INPUT_REASONS] = state[TR_REASONS]
+    age = now - state[TR_LAST_VALID + int(params[TP_IMU])]
+    state[row + S_IMU_AGE] = min(max(age, 0.0), MAX_IMU_AGE)
+    state[row + S_SUSPECT] = state[TR_SUSPECT]
+    for i in range(SAMPLE_SIZE):
+        sample[i] = state[row + i]
+    state[TR_FRESH] = 0.0
+    state[TR_REASONS] = 0.0
+    state[TR_SUSPECT] = 0.0
