@@ -35,7 +35,6 @@ from ptw_rt.core.layout import (
     S_ROLL_RATE_BODY,
     S_STEER_COUNT,
     S_YAW_RATE_BODY,
-    SAMPLE_SIZE,
 )
 from ptw_rt.edge import tracking as tr
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError, MessageLayout

@@ -22,9 +22,7 @@ from ptw_rt.core.layout import (
     E_FY_FRONT,
     E_FY_REAR,
     E_LAT_VEL,
-    E_MODE,
     E_PLAUSIBILITY,
-    E_REASONS,
     E_RIDER_TORQUE,
     E_ROLL,
     E_ROLL_RATE,
@@ -36,7 +34,6 @@ from ptw_rt.core.layout import (
     E_TYRE_LOG_SD,
     E_TYRE_NIS,
     E_TYRE_SCALE,
-    E_VALID,
     V_CAMBER,
     V_CORNERING,
     V_FY_FRONT,
@@ -292,5 +289,5 @@ class OutputEncoder:
         values = self._values
         return [
             frame(m, w, values[i])
-            for i, (m, w) in enumerate(zip(self._messages[:n].tolist(), self._words[:n].tolist()))
+            for i, (m, w) in enumerate(zip(self._messages[:n].tolist(), self._words[:n].tolist(), strict=True))
         ]
