@@ -1,6 +1,7 @@
 """``ptw-rt replay``: CAN logs through the daemon's cycle, clocked by the log's time stamps.
 
-    log frames -> drive_log(CycleRunner: decode, track, step, encode) -> output log (+ optional CSV)
+    log frames -> frame_blocks (decoded per message id) -> drive_blocks (the compiled loop: track, step, encode)
+               -> output log written per chunk of cycles (+ optional CSV)
 
 Input and output logs are any format of ``ptw_rt.io.logformats`` (candump ``-L``, ASC, BLF, TRC, CSV, MF4),
 the input's found from its extension and content, the output's from its extension (none: candump).
@@ -44,7 +45,16 @@ from ptw_rt.core.layout import (
     V_CAMBER,
     V_CORNERING,
 )
-from ptw_rt.edge.cycle import DEFAULT_MAX_GAP_S, CycleRunner, DriveStats, SegmentBreak, build_runner, drive_log
+from ptw_rt.edge.cycle import (
+    DEFAULT_MAX_GAP_S,
+    Chunk,
+    CycleRunner,
+    DriveStats,
+    SegmentBreak,
+    build_runner,
+    drive_blocks,
+    frame_blocks,
+)
 from ptw_rt.errors import EXIT_OK, EXIT_OUTPUT, EXIT_PARTIAL, UserFacingError
 from ptw_rt.io.logformats import (
     EXTENSIONS,
@@ -260,30 +270,41 @@ def replay_log(
                 csv.write("time," + ",".join(ESTIMATE_NAMES) + "\n")
             except OSError as exc:
                 raise _output_error(csv_path, exc) from None
-        write_cycle = writer.write_cycle
+        encoder = runner.encoder
+        bulk_writer = getattr(writer, "write_frames", None)
 
-        def on_frames(now: float, out: list[tuple[int, bytes]]) -> None:
-            nonlocal frames_out
+        def on_chunk(chunk: Chunk) -> None:
+            nonlocal frames_out, t_last, sensor_fault_cycles, last
+            times = chunk.times
             try:
-                write_cycle(now, out)
+                frames = encoder.bulk(chunk.messages, chunk.words) if bulk_writer is not None else None
+                if frames is not None:
+                    ends = chunk.frame_end
+                    cycle_of = np.repeat(np.arange(times.size), np.diff(ends, prepend=0))
+                    bulk_writer(times, cycle_of, *frames)
+                else:
+                    for c, now in enumerate(times.tolist()):
+                        writer.write_cycle(now, chunk.frames(encoder, c))
             except OSError as exc:
                 raise _output_error(out_log, exc) from None
-            frames_out += len(out)
-
-        def on_cycle(now: float, estimates: np.ndarray) -> None:
-            nonlocal t_last, sensor_fault_cycles, last
-            m = int(estimates[E_MODE])
-            if 0 <= m < len(mode_counts):
-                mode_counts[m] += 1
-            if int(estimates[E_REASONS]) & SENSOR_FAULT_BITS:
-                sensor_fault_cycles += 1
-            last = estimates
+            frames_out += int(chunk.frame_end[-1])
+            est = chunk.estimates
+            modes = est[:, E_MODE].astype(np.int64)
+            seen = np.bincount(modes[(modes >= 0) & (modes < len(MODE_NAMES))], minlength=len(MODE_NAMES))
+            for m, n in enumerate(seen.tolist()):
+                mode_counts[m] += n
+            sensor_fault_cycles += int(np.count_nonzero(est[:, E_REASONS].astype(np.int64) & SENSOR_FAULT_BITS))
+            last = est[-1].copy()
+            t_last = float(times[-1])
             if csv is not None:
                 try:
-                    csv.write(_csv_row(now, estimates))
+                    csv.write(
+                        "".join(
+                            [_CSV_TEMPLATE % (t, *row) for t, row in zip(times.tolist(), est.tolist(), strict=True)]
+                        )
+                    )
                 except OSError as exc:
                     raise _output_error(csv_path, exc) from None
-            t_last = now
 
         def on_segment(brk: SegmentBreak) -> None:
             nonlocal duration, t_first
@@ -292,9 +313,10 @@ def replay_log(
             feed.on_segment(brk)
 
         try:
-            cycles = drive_log(
-                feed, runner, on_cycle, on_frames=on_frames, max_gap=max_gap, on_segment=on_segment, stats=drive
-            )
+            cycles = drive_blocks(
+                frame_blocks(feed, runner.tracker), runner, on_chunk, max_gap=max_gap, on_segment=on_segment,
+                stats=drive,
+            )  # fmt: skip
         except OSError as exc:  # output errors are ReplayOutputError by now: this is the input failing (EIO ...)
             raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
         duration += max(0.0, t_last - t_first)

@@ -288,6 +288,11 @@ class Estimator:
     def step(self, sample: np.ndarray, estimates: np.ndarray) -> None:
         packed_step(sample, estimates, self._state, self._state_index, self._tables, self._table_index)
 
+    def buffers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(state, state index, tables, table index)``: the last four arguments of ``packed_step``, for a
+        compiled loop that calls the step itself (``ptw_rt.edge.drive``)."""
+        return self._state, self._state_index, self._tables, self._table_index
+
     def learned_stiffness(self) -> np.ndarray:
         """[C_af, C_gf, C_ar, C_gr] in N/rad: the tyre bank's scale times the nominal file's."""
         k = lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])

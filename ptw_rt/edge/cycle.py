@@ -12,24 +12,28 @@ straight into EST_Status; ``process_degraded`` publishes a VALID or CONVERGING m
 
 `drive_log` is the log-clocked driver (replay, evaluation): a cycle every `sample_time` of log time; the frames
 stamped up to a cycle's time belong to it; a jump of the log's clock (forward by more than `max_gap`, or
-backwards) ends a segment and the next starts from reset inputs.
+backwards) ends a segment and the next starts from reset inputs. It runs the whole cycle of every frame and
+cycle of a block of frames in one compiled loop (``ptw_rt.edge.drive``) on the same state and the same compiled
+functions as ``CycleRunner.run``; `frame_blocks` decodes the frames per message identifier at once.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from ptw_rt.core.estimator import Estimator
 from ptw_rt.core.layout import E_MODE, MODE_CONVERGING, MODE_DEGRADED, MODE_VALID, new_estimates, new_sample
 from ptw_rt.design.file import load_design
+from ptw_rt.edge import drive as dr
+from ptw_rt.edge import tracking as tr
 from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.edge.outputs import OutputEncoder
-from ptw_rt.io.dbc import FrameCodec
+from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.settings import Settings, load_settings
 
@@ -38,6 +42,9 @@ Frame = tuple[int, bytes]
 _DEGRADABLE = (float(MODE_CONVERGING), float(MODE_VALID))
 DEFAULT_MAX_GAP_S = 5.0  # drive_log: a longer gap in a log's time stamps ends a segment
 DEFAULT_REORDER_TOLERANCE_S = 0.02  # drive_log: frames up to this much out of order are taken as they come
+BLOCK_FRAMES = 32768  # frames decoded at once (drive_log)
+BLOCK_CYCLES = 4096  # cycles the compiled loop writes before its outputs are handed on
+_BYTES_TYPES = (bytes, bytearray)
 
 
 class CycleRunner:
@@ -84,6 +91,17 @@ class CycleRunner:
         if self.process_degraded and estimates[E_MODE] in _DEGRADABLE:
             estimates[E_MODE] = MODE_DEGRADED  # the step writes every output each cycle: nothing carries over
         return self.encoder.frames(estimates, index, self.status, self.tracker.stale_bits(), self.process_reasons)
+
+    def process_figures(self) -> np.ndarray:
+        """[degraded, reasons, overrun count, cycle time us] of the process, for the compiled loop."""
+        return np.array(
+            [
+                1.0 if self.process_degraded else 0.0,
+                float(self.process_reasons),
+                float(int(self.status.get("overrun_count", 0))),
+                float(int(self.status.get("cycle_time_us", 0))),
+            ]
+        )
 
     def restart_segment(self) -> None:
         """A new segment of a log after a time discontinuity: the inputs start from nothing, the estimator from
@@ -139,6 +157,192 @@ class DriveStats:
 MAX_BREAKS_KEPT = 1000
 
 
+class Block(NamedTuple):
+    """Frames decoded for the compiled loop: stamp, what happened to each (``drive.FRAME_*``), its input index
+    and its signal values (DBC order, ``tracking.MAX_SIGNALS`` columns)."""
+
+    times: np.ndarray
+    kinds: np.ndarray
+    inputs: np.ndarray
+    values: np.ndarray
+
+
+def decode_block(
+    tracker: InputTracker, times: np.ndarray, ids: np.ndarray, lengths: np.ndarray, data: np.ndarray
+) -> Block:
+    """A block from arrays of standard-identifier frames: stamps, identifiers, DLCs and ``uint8[n, 8]`` bytes
+    (zero-padded). Each input message's frames are decoded at once (``MessageLayout.unpack_many``)."""
+    n = times.shape[0]
+    kinds = np.full(n, dr.FRAME_UNKNOWN, dtype=np.int64)
+    inputs = np.zeros(n, dtype=np.int64)
+    values = np.zeros((n, tr.MAX_SIGNALS))
+    for k, layout in enumerate(tracker.layouts):
+        if layout.message.is_extended_frame:
+            continue
+        mine = ids == layout.frame_id
+        if not mine.any():
+            continue
+        inputs[mine] = k
+        kinds[mine] = dr.FRAME_UNDECODABLE
+        rows = np.flatnonzero(mine & (lengths == layout.length))
+        if rows.size:
+            decoded, ok = layout.unpack_many(data[rows])
+            good = rows[ok]
+            kinds[good] = dr.FRAME_OK
+            values[good, : decoded.shape[1]] = decoded[ok]
+    return Block(times, kinds, inputs, values)
+
+
+def frame_blocks(
+    frames: Iterable[tuple[float, int, bytes]], tracker: InputTracker, size: int = BLOCK_FRAMES
+) -> Iterator[Block]:
+    """``(timestamp, id, data)`` frames (standard identifiers) in blocks of ``size``, decoded. A frame whose id
+    or data is not a plain int and bytes takes the codec's own checks, as ``InputTracker.on_frame`` does."""
+    it = iter(frames)
+    while True:
+        times: list[float] = []
+        ids: list[int] = []
+        chunks: list[bytes] = []
+        exotic: list[tuple[int, object, object]] = []
+        for timestamp, frame_id, data in it:
+            pos = len(times)
+            times.append(timestamp)
+            if type(frame_id) is int and type(data) in _BYTES_TYPES and len(data) <= 8:
+                ids.append(frame_id)
+                chunks.append(data)
+            else:
+                ids.append(-1)
+                chunks.append(b"")
+                exotic.append((pos, frame_id, data))
+            if pos + 1 == size:
+                break
+        if not times:
+            return
+        lengths = np.fromiter(map(len, chunks), dtype=np.int64, count=len(chunks))
+        padded = b"".join(c if len(c) == 8 else bytes(c).ljust(8, b"\0") for c in chunks)
+        data = np.frombuffer(padded, dtype=np.uint8).reshape(-1, 8)
+        block = decode_block(tracker, np.array(times, dtype=float), np.array(ids, dtype=np.int64), lengths, data)
+        for pos, frame_id, data_ in exotic:
+            _decode_exotic(tracker, block, pos, frame_id, data_)
+        yield block
+        if len(times) < size:
+            return
+
+
+def _decode_exotic(tracker: InputTracker, block: Block, pos: int, frame_id: object, data: object) -> None:
+    plan = tracker.input_of(frame_id)
+    if plan is None:
+        return  # FRAME_UNKNOWN already
+    k, _layout = plan
+    block.inputs[pos] = k
+    try:
+        decoded = list(tracker.codec.decode(frame_id, data)[1].values())
+    except FrameDecodeError:
+        block.kinds[pos] = dr.FRAME_UNDECODABLE
+        return
+    block.kinds[pos] = dr.FRAME_OK
+    block.values[pos, : len(decoded)] = decoded
+
+
+class Chunk(NamedTuple):
+    """What one call of the compiled loop produced: ``cycles`` cycles (their times and Estimates rows) and
+    their frames (``frame_end[c]``: one past cycle c's last frame row; ``messages``: plan index; ``words``)."""
+
+    times: np.ndarray
+    estimates: np.ndarray
+    frame_end: np.ndarray
+    messages: np.ndarray
+    words: np.ndarray
+    values: np.ndarray
+
+    @property
+    def cycles(self) -> int:
+        return self.times.shape[0]
+
+    def frames(self, encoder: OutputEncoder, c: int) -> list[Frame]:
+        """The ``(frame id, data)`` of cycle ``c`` of the chunk."""
+        first = int(self.frame_end[c - 1]) if c else 0
+        last = int(self.frame_end[c])
+        return [encoder.frame(int(self.messages[i]), int(self.words[i]), self.values[i]) for i in range(first, last)]
+
+
+def drive_blocks(
+    blocks: Iterable[Block],
+    runner: CycleRunner,
+    on_chunk: Callable[[Chunk], None],
+    *,
+    start: float | None = None,
+    max_gap: float = DEFAULT_MAX_GAP_S,
+    reorder_tolerance: float = DEFAULT_REORDER_TOLERANCE_S,
+    on_segment: Callable[[SegmentBreak], None] | None = None,
+    stats: DriveStats | None = None,
+    capacity: int = BLOCK_CYCLES,
+) -> int:
+    """`drive_log` on decoded blocks: ``on_chunk(Chunk)`` after every call of the compiled loop (its buffers are
+    reused: copy what must outlive the call). Returns the number of cycles."""
+    if not max_gap > 0.0:
+        raise ValueError(f"max_gap must be > 0, got {max_gap!r}")
+    stats = stats if stats is not None else DriveStats()
+    it = iter(blocks)
+    block = next(it, None)
+    while block is not None and block.times.shape[0] == 0:
+        block = next(it, None)
+    if block is None:
+        return 0
+    dt = runner.sample_time
+    t0 = float(block.times[0]) if start is None else float(start)
+    state = dr.initial_state(t0, dt, runner.cycles)
+    cycles0 = runner.cycles
+    out = dr.Outputs(capacity)
+    tracker, encoder = runner.tracker, runner.encoder
+    s, si, t, ti = runner.estimator.buffers()
+    process = runner.process_figures()
+    stats.segments = 1
+    while block is not None:
+        following = next(it, None)
+        while following is not None and following.times.shape[0] == 0:
+            following = next(it, None)
+        position = 0
+        while True:
+            result = dr.drive_block(
+                state, dt, max_gap, reorder_tolerance,
+                block.times, block.kinds, block.inputs, block.values, position, following is None,
+                tracker.state, tracker.params, runner.sample, runner.estimates, s, si, t, ti,
+                encoder.plan, encoder.state, process,
+                out.cycle_times, out.estimates, out.frame_end, out.messages, out.words, out.values, out.counts,
+            )  # fmt: skip
+            position, c, f = (int(x) for x in out.counts)
+            runner.cycles = int(state[dr.DR_CYCLES])
+            if c:
+                on_chunk(
+                    Chunk(
+                        out.cycle_times[:c], out.estimates[:c], out.frame_end[:c], out.messages[:f], out.words[:f],
+                        out.values[:f],
+                    )
+                )  # fmt: skip
+            if result == dr.BREAK:
+                segments = int(state[dr.DR_SEGMENTS])
+                brk = SegmentBreak(
+                    "backwards" if state[dr.DR_BREAK_KIND] else "gap",
+                    float(state[dr.DR_BREAK_FROM]),
+                    float(state[dr.DR_BREAK_TO]),
+                    segments,
+                    int(state[dr.DR_BREAK_CYCLES]) - cycles0,
+                )
+                if len(stats.breaks) < MAX_BREAKS_KEPT:
+                    stats.breaks.append(brk)
+                if on_segment is not None:
+                    on_segment(brk)
+                runner.restart_segment()
+            elif result == dr.DONE:
+                break
+        block = following
+    stats.segments = int(state[dr.DR_SEGMENTS])
+    stats.late_frames += int(state[dr.DR_LATE_FRAMES])
+    stats.bad_stamps += int(state[dr.DR_BAD_STAMPS])
+    return runner.cycles - cycles0
+
+
 def drive_log(
     frames: Iterable[tuple[float, int, bytes]],
     runner: CycleRunner,
@@ -157,8 +361,8 @@ def drive_log(
 
     * Cycles every sample time from `start` (default: the first frame's stamp); the frames stamped up to a
       cycle's time belong to it; cycles go on until the last frame has been consumed. Per cycle,
-      ``on_frames(now, output frames)`` (if given: the whole cycle, encoding included) and then
-      ``on_cycle(now, Estimates)``.
+      ``on_frames(now, output frames)`` (if given) and then ``on_cycle(now, Estimates)``; both are called after
+      the compiled loop has run a chunk of cycles, in cycle order (the Estimates given are a row of the chunk).
     * A frame stamped at most `reorder_tolerance` before the newest stamp seen (out of order, as a CAN log of
       several nodes has) is taken as it comes: into the cycle being collected, as a late frame on the live bus
       would be; if that cycle's predecessor already closed at or after its stamp it is counted in
@@ -170,74 +374,28 @@ def drive_log(
       ends the segment: the cycle being collected is closed, ``on_segment(SegmentBreak)`` is called, the
       inputs are reset (``CycleRunner.restart_segment``: the estimator keeps its learned tyre stiffness) and
       the next segment's cycles start from that frame's stamp. Output counters and the 10 Hz phase go on.
+    * A frame with a non-finite stamp is dropped and counted in ``stats.bad_stamps``.
     """
     if not max_gap > 0.0:
         raise ValueError(f"max_gap must be > 0, got {max_gap!r}")
-    stats = stats if stats is not None else DriveStats()
-    dt = runner.sample_time
-    it = iter(frames)
-    pending = next(it, None)
-    if pending is None:
-        return 0
-    t0 = pending[0] if start is None else start
-    newest = t0
-    on_frame = runner.on_frame  # bound once: this loop runs per frame
-    k = 1
-    n = 0
-    now = t0 + dt
-    closed = -math.inf  # time of the last closed cycle
-    consumed = False  # frames taken in since the last closed cycle
-    seg_cycles = 0
-    stats.segments = 1
-    while True:
-        if pending is not None:
-            t = pending[0]
-            if not newest - reorder_tolerance <= t <= newest + max_gap:
-                if not math.isfinite(t):  # no clock to run on: dropped, counted
-                    stats.bad_stamps += 1
-                    pending = next(it, None)
-                    continue
-                if consumed or seg_cycles:
-                    if consumed:  # close the cycle being collected: its frames belong to this segment
-                        n += _close(runner, now, on_frames, on_cycle)
-                        consumed = False
-                    stats.segments += 1
-                    brk = SegmentBreak("gap" if t > newest else "backwards", newest, t, stats.segments, n)
-                    if len(stats.breaks) < MAX_BREAKS_KEPT:
-                        stats.breaks.append(brk)
-                    if on_segment is not None:
-                        on_segment(brk)
-                    runner.restart_segment()
-                t0 = newest = t
-                k = 1
-                now = t0 + dt
-                closed = -math.inf
-                seg_cycles = 0
-            if t <= now:
-                on_frame(t, pending[1], pending[2])
-                consumed = True
-                if t > newest:
-                    newest = t
-                elif t <= closed:
-                    stats.late_frames += 1
-                pending = next(it, None)
-                continue
-        elif not consumed:
-            return n
-        n += _close(runner, now, on_frames, on_cycle)
-        closed = now
-        consumed = False
-        seg_cycles += 1
-        k += 1
-        now = t0 + k * dt
+    encoder = runner.encoder
 
+    def on_chunk(chunk: Chunk) -> None:
+        if on_frames is None and on_cycle is None:
+            return
+        for c, now in enumerate(chunk.times.tolist()):
+            if on_frames is not None:
+                on_frames(now, chunk.frames(encoder, c))
+            if on_cycle is not None:
+                on_cycle(now, chunk.estimates[c])
 
-def _close(runner: CycleRunner, now: float, on_frames, on_cycle) -> int:
-    """One cycle at `now` for `drive_log`; returns 1."""
-    if on_frames is not None:
-        on_frames(now, runner.run(now))
-    else:
-        runner.cycle(now)
-    if on_cycle is not None:
-        on_cycle(now, runner.estimates)
-    return 1
+    return drive_blocks(
+        frame_blocks(frames, runner.tracker),
+        runner,
+        on_chunk,
+        start=start,
+        max_gap=max_gap,
+        reorder_tolerance=reorder_tolerance,
+        on_segment=on_segment,
+        stats=stats,
+    )

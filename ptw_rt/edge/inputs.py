@@ -102,6 +102,11 @@ class InputTracker:
             packer = struct.Struct(f"={len(layout.signals)}d")
             self._by_id[(layout.frame_id, bool(layout.message.is_extended_frame))] = (k, layout, packer)
 
+    def input_of(self, frame_id: object, extended: bool = False) -> tuple[int, MessageLayout] | None:
+        """``(input index, layout)`` of the input message with this identifier, None for someone else's."""
+        plan = self._by_id.get((frame_id, extended))
+        return None if plan is None else plan[:2]
+
     @property
     def unknown_ids(self) -> int:
         return int(self.state[tr.TR_UNKNOWN_IDS])

@@ -227,6 +227,16 @@ class OutputEncoder:
             return frame_id, (word & _MASK64).to_bytes(8, "little")[:length]
         return frame_id, layout.pack(values[: len(layout.signals)].tolist())
 
+    def bulk(self, messages: np.ndarray, words: np.ndarray) -> tuple[list[int], np.ndarray, list[int]] | None:
+        """Many frames of the compiled encoder at once: ``(ids, uint8[n, 8] data, lengths)``, or None when some
+        message is not plain (its bytes come from ``frame``, one by one)."""
+        if not all(plain for _, _, plain, _ in self._frame_of):
+            return None
+        index = messages.tolist()
+        ids = [self._frame_of[m][0] for m in index]
+        lengths = [self._frame_of[m][1] for m in index]
+        return ids, words.astype("<i8").view(np.uint8).reshape(-1, 8), lengths
+
     def status_frame(
         self,
         estimates: np.ndarray,
