@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from ptw_rt.core import speed
 from ptw_rt.core.conditioning import ground_yaw_rate, horizontal_lateral_accel, kinematic_roll, steer_angle
 from ptw_rt.core.speed import new_speed_state, speed_step
 
@@ -87,3 +88,29 @@ def test_speed_never_negative_and_waits_for_a_first_fix():
     assert speed_step(state, -5.0, np.nan, False, False, 0.01, 0.3, 0.002, 10) == 0.0
     assert speed_step(state, -50.0, 0.1, True, True, 0.01, 0.3, 0.002, 10) >= 0.0
     assert speed_step(state, np.nan, np.nan, False, True, 0.01, 0.3, 0.002, 10) >= 0.0
+
+
+def _speed_with_gps(values_by_cycle, cycles, accel=0.0, latency=10):
+    """Speed filter at constant speed 20 m/s fed GPS every 10 cycles from ``values_by_cycle(k)``."""
+    state = new_speed_state(latency)
+    out = np.zeros(cycles)
+    for k in range(cycles):
+        new = k % 10 == 0
+        out[k] = speed_step(state, accel, values_by_cycle(k) if new else np.nan, new, new, 0.01, 0.3, 0.002, latency)
+    return out
+
+
+def test_a_gps_speed_the_vehicle_cannot_have_had_is_refused():
+    """One receiver glitch (0 m/s at 20 m/s: a 20 g stop) must not pull the speed (it once pulled it to 10 m/s
+    and the attitude filter learned a wrong yaw-gyro bias from it, with roll published VALID and 4 deg off)."""
+    glitch = {300, 310, 320}
+    est = _speed_with_gps(lambda k: 0.0 if k in glitch else 20.0, 600)
+    assert np.all(np.abs(est[10:] - 20.0) < 0.05)
+
+
+def test_gps_speeds_refused_in_a_row_are_taken_as_the_truth():
+    """... but when every fix says otherwise (the estimate drifted in an outage, or a wrong start), the estimate
+    follows GPS within speed.REACQUIRE_FIXES fixes."""
+    est = _speed_with_gps(lambda k: 20.0 if k < 300 else 8.0, 600)
+    assert abs(est[300 + 10 * speed.REACQUIRE_FIXES + 20] - 8.0) < 0.3
+    assert abs(est[-1] - 8.0) < 0.05

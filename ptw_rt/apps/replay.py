@@ -81,10 +81,11 @@ MAX_TREE_DEPTH = 32  # directory levels searched for logs below a directory give
 
 
 class _Feed:
-    """The log's frames (``open_log``, any format) for ``drive_log`` as (timestamp, id, data); 29-bit frames
-    counted in ``skipped`` (remote, error and CAN FD frames in the reader's stats). Knows the line (record) of
-    the frame it gave last and reports the reader's discontinuities that the cycle driver bridges (one line
-    each); those that end a segment are reported by ``on_segment``. ``progress()`` is called every 4096 frames.
+    """The log's frames (``open_log``, any format) for the cycle driver as (timestamp, id, data); 29-bit frames
+    counted in ``skipped`` (remote, error and CAN FD frames in the reader's stats). Remembers the reader's
+    discontinuities of the time stamps with the index of the frame where each starts: the driver reads ahead in
+    blocks, so what it made of one (a new segment, ``on_segment``, or bridged, ``report_bridged`` once the log
+    is driven) is reported, one line each, once it is known. ``progress()`` is called every 4096 frames.
     """
 
     def __init__(
@@ -103,18 +104,14 @@ class _Feed:
         self.max_gap = max_gap
         self.progress = progress
         self.skipped = 0
-        self.line = 0
         self._seen = 0  # reader discontinuities seen so far
-        self._pending: tuple | None = None  # (line, from, to) of a discontinuity not yet reported
+        self._jumps: dict[int, tuple[int, float, float]] = {}  # frame index -> (line, from, to), not yet reported
 
     def __iter__(self) -> Iterator[tuple[float, int, bytes]]:
-        stats = self.stats
-        reader = stats.reader  # the time rule's counts, read directly: this loop runs per frame
+        reader = self.stats.reader  # the time rule's counts, read directly: this loop runs per frame
         progress = self.progress
         n = 0
         for timestamp, frame_id, data, extended in itertools.chain((self.first,), self.frames):
-            if self._pending is not None:  # the cycle driver took the last frame without a new segment
-                self._report_bridged()
             if extended:
                 self.skipped += 1
                 continue
@@ -122,37 +119,35 @@ class _Feed:
                 self._seen = reader.discontinuities
                 lines = reader.discontinuity_lines
                 if len(lines) >= self._seen:
-                    self._pending = lines[self._seen - 1]
-            self.line = stats.line
+                    self._jumps[n] = lines[self._seen - 1]
             yield timestamp, frame_id, data
             n += 1
             if progress is not None and not n & 4095:
                 progress()
-        if self._pending is not None:
-            self._report_bridged()
 
-    def _report_bridged(self) -> None:
-        line, t_from, t_to = self._pending
-        self._pending = None
-        log.warning(
-            "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f): bridged, the gap is within --max-gap %g s "
-            "(inputs stale meanwhile)",
-            self.name,
-            line,
-            t_to - t_from,
-            t_from,
-            t_to,
-            self.max_gap,
-        )
+    def report_bridged(self) -> None:
+        """The discontinuities the driver went through without a new segment (the gap within --max-gap)."""
+        for line, t_from, t_to in self._jumps.values():
+            log.warning(
+                "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f): bridged, the gap is within --max-gap %g s "
+                "(inputs stale meanwhile)",
+                self.name,
+                line,
+                t_to - t_from,
+                t_from,
+                t_to,
+                self.max_gap,
+            )
+        self._jumps.clear()
 
     def on_segment(self, brk: SegmentBreak) -> None:
-        self._pending = None
+        jump = self._jumps.pop(brk.frame, None)
+        where = self.name if jump is None else f"{self.name}:{jump[0]}"
         what = f"a gap longer than --max-gap {self.max_gap:g} s" if brk.kind == "gap" else "the clock going back"
         log.warning(
-            "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f), %s: segment %d starts here from reset inputs "
+            "%s: time stamps jump %+.3f s (from %.6f to %.6f), %s: segment %d starts here from reset inputs "
             "(the estimator keeps its learned tyre stiffness)",
-            self.name,
-            self.line,
+            where,
             brk.jump,
             brk.t_from,
             brk.t_to,
@@ -320,6 +315,7 @@ def replay_log(
         except OSError as exc:  # output errors are ReplayOutputError by now: this is the input failing (EIO ...)
             raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
         duration += max(0.0, t_last - t_first)
+        feed.report_bridged()
         for close, path in ((writer.close, out_log), (None if csv is None else csv.close, csv_path)):
             if close is not None:
                 try:

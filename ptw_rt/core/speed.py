@@ -1,9 +1,11 @@
 """Stage 2, speed: forward speed at 100 Hz from 10 Hz GPS and the longitudinal accelerometer (jitted).
 
 A complementary filter whose GPS correction is applied against the prediction made when the fix was valid
-(latency compensation through a ring buffer of past predictions). In a GPS dropout the prediction is held
-(accelerometer only, with a slow decay of the correction) and the inputs stage flags it. It runs before the
-attitude stage, which needs the speed (the lateral specific force has a u r term).
+(latency compensation through a ring buffer of past predictions). A GPS speed farther from the prediction than
+the vehicle can have moved is refused (``GATE_*``), until enough in a row say the estimate is what is wrong.
+In a GPS dropout the prediction is held (accelerometer only, with a slow decay of the correction) and the inputs
+stage flags it. It runs before the attitude stage, which needs the speed (the lateral specific force has a u r
+term).
 """
 
 from __future__ import annotations
@@ -17,8 +19,25 @@ from ptw_rt.core import inputs as inp
 from ptw_rt.core.stage import Layout, Stage
 
 # ---- state: the filter's fixed part, then a ring of past predictions (`new_speed_state`: latency + 2 long) ----
-STATE = Layout("SPD_", u=1, bias=1, head=1, init=1, ring0=1)
-SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT, SPD_RING0 = STATE.offsets
+STATE = Layout(
+    "SPD_",
+    u=1,
+    bias=1,
+    head=1,
+    init=1,
+    refused=1,  # GPS speeds refused in a row (outside the gate)
+    since=1,  # s since the last GPS speed taken
+    ring0=1,
+)
+SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT, SPD_REFUSED, SPD_SINCE, SPD_RING0 = STATE.offsets
+
+# The gate on a GPS speed's innovation: what the accelerometer-propagated speed can be off by, GPS noise and a
+# drift of the accelerometer's bias over the time since the last fix taken. A fix beyond it is not a speed the
+# vehicle can have had (one sample of 0 m/s at 20 m/s is a receiver glitch, not a 20 g stop) and is refused;
+# REACQUIRE_FIXES refused in a row mean the estimate is what is wrong (a long outage): it is re-taken from GPS.
+GATE_SPEED = 3.0  # m/s
+GATE_DRIFT = 1.0  # m/s^2
+REACQUIRE_FIXES = 10
 
 PARAMS = Layout(
     "P_",
@@ -86,16 +105,26 @@ def speed_step(
     a = accel_x if math.isfinite(accel_x) else 0.0
     u = state[SPD_U] + (a - state[SPD_BIAS]) * dt
     head = int(state[SPD_HEAD])
+    state[SPD_SINCE] += dt
     if gps_new and gps_ok and math.isfinite(gps_speed):
         lag = min(latency_samples, n_ring - 1)
         past = state[SPD_RING0 + (head - lag) % n_ring]
         innovation = gps_speed - past
-        u += gain * innovation
-        # an accelerometer bias shows up as a persistent innovation of one sign
-        state[SPD_BIAS] -= bias_gain * innovation
+        share = gain
+        if abs(innovation) > GATE_SPEED + GATE_DRIFT * state[SPD_SINCE]:
+            state[SPD_REFUSED] += 1.0
+            share = 0.0  # refused: the prediction goes on
+            if state[SPD_REFUSED] >= REACQUIRE_FIXES:  # re-taken from GPS whole, with the bias learned so far
+                share = 1.0
+        if share != 0.0:
+            state[SPD_REFUSED] = 0.0
+            state[SPD_SINCE] = 0.0
+        u += share * innovation
+        if share == gain:  # an accelerometer bias shows up as a persistent innovation of one sign
+            state[SPD_BIAS] -= bias_gain * innovation
         # shift the stored predictions too, so the next fix is compared like with like
         for k in range(n_ring):
-            state[SPD_RING0 + k] += gain * innovation
+            state[SPD_RING0 + k] += share * innovation
     if u < 0.0:
         u = 0.0
     head = (head + 1) % n_ring

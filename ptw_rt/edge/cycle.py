@@ -92,6 +92,27 @@ class CycleRunner:
             estimates[E_MODE] = MODE_DEGRADED  # the step writes every output each cycle: nothing carries over
         return self.encoder.frames(estimates, index, self.status, self.tracker.stale_bits(), self.process_reasons)
 
+    def warm_up(self) -> None:
+        """Load (or compile) every compiled function of the live cycle, as the daemon calls them, before a
+        deadline matters: a frame, a source without counter, a decode error, an unknown id, a cycle with all its
+        frames and a last status frame. The inputs, the output counters and the estimator are as before (its
+        state reset, as ``Estimator.reset``)."""
+        tracker_state, encoder_state = self.tracker.state.copy(), self.encoder.state.copy()
+        sample, estimates = self.sample.copy(), self.estimates.copy()
+        layout = self.tracker.layouts[0]
+        self.tracker.on_frame(0.0, layout.frame_id, bytes(layout.length))
+        self.tracker.on_values(self.tracker.layouts[-1].name, 0.0, {})
+        self.tracker.decode_error(layout.name)
+        self.tracker.on_frame(0.0, -1, b"")
+        self.tracker.restart()
+        self.tracker.fill(sample, 0.0)
+        self.estimator.step(sample, estimates)
+        self.estimator.reset()
+        self.encoder.frames(estimates, 0, self.status, 0, 0)
+        self.encoder.status_frame(estimates, 0, self.status, valid=False)
+        self.tracker.state[:] = tracker_state
+        self.encoder.state[:] = encoder_state
+
     def process_figures(self) -> np.ndarray:
         """[degraded, reasons, overrun count, cycle time us] of the process, for the compiled loop."""
         return np.array(
@@ -138,6 +159,7 @@ class SegmentBreak:
     t_to: float  # stamp of the first frame of the next segment
     segment: int  # number of the segment that starts here (2, 3, ...)
     cycles_before: int  # cycles driven before it (all segments)
+    frame: int = -1  # index of the frame that starts it among the frames driven (from 0)
 
     @property
     def jump(self) -> float:
@@ -165,10 +187,16 @@ class Block(NamedTuple):
     kinds: np.ndarray
     inputs: np.ndarray
     values: np.ndarray
+    offset: int = 0  # index of its first frame among all the frames of the source
 
 
 def decode_block(
-    tracker: InputTracker, times: np.ndarray, ids: np.ndarray, lengths: np.ndarray, data: np.ndarray
+    tracker: InputTracker,
+    times: np.ndarray,
+    ids: np.ndarray,
+    lengths: np.ndarray,
+    data: np.ndarray,
+    offset: int = 0,
 ) -> Block:
     """A block from arrays of standard-identifier frames: stamps, identifiers, DLCs and ``uint8[n, 8]`` bytes
     (zero-padded). Each input message's frames are decoded at once (``MessageLayout.unpack_many``)."""
@@ -190,7 +218,7 @@ def decode_block(
             good = rows[ok]
             kinds[good] = dr.FRAME_OK
             values[good, : decoded.shape[1]] = decoded[ok]
-    return Block(times, kinds, inputs, values)
+    return Block(times, kinds, inputs, values, offset)
 
 
 def frame_blocks(
@@ -199,6 +227,7 @@ def frame_blocks(
     """``(timestamp, id, data)`` frames (standard identifiers) in blocks of ``size``, decoded. A frame whose id
     or data is not a plain int and bytes takes the codec's own checks, as ``InputTracker.on_frame`` does."""
     it = iter(frames)
+    offset = 0
     while True:
         times: list[float] = []
         ids: list[int] = []
@@ -221,7 +250,10 @@ def frame_blocks(
         lengths = np.fromiter(map(len, chunks), dtype=np.int64, count=len(chunks))
         padded = b"".join(c if len(c) == 8 else bytes(c).ljust(8, b"\0") for c in chunks)
         data = np.frombuffer(padded, dtype=np.uint8).reshape(-1, 8)
-        block = decode_block(tracker, np.array(times, dtype=float), np.array(ids, dtype=np.int64), lengths, data)
+        block = decode_block(
+            tracker, np.array(times, dtype=float), np.array(ids, dtype=np.int64), lengths, data, offset
+        )
+        offset += len(times)
         for pos, frame_id, data_ in exotic:
             _decode_exotic(tracker, block, pos, frame_id, data_)
         yield block
@@ -249,6 +281,7 @@ class Chunk(NamedTuple):
     their frames (``frame_end[c]``: one past cycle c's last frame row; ``messages``: plan index; ``words``)."""
 
     times: np.ndarray
+    samples: np.ndarray  # what each cycle's step received
     estimates: np.ndarray
     frame_end: np.ndarray
     messages: np.ndarray
@@ -309,14 +342,16 @@ def drive_blocks(
                 block.times, block.kinds, block.inputs, block.values, position, following is None,
                 tracker.state, tracker.params, runner.sample, runner.estimates, s, si, t, ti,
                 encoder.plan, encoder.state, process,
-                out.cycle_times, out.estimates, out.frame_end, out.messages, out.words, out.values, out.counts,
+                out.cycle_times, out.samples, out.estimates, out.frame_end, out.messages, out.words, out.values,
+                out.counts,
             )  # fmt: skip
             position, c, f = (int(x) for x in out.counts)
             runner.cycles = int(state[dr.DR_CYCLES])
             if c:
                 on_chunk(
                     Chunk(
-                        out.cycle_times[:c], out.estimates[:c], out.frame_end[:c], out.messages[:f], out.words[:f],
+                        out.cycle_times[:c], out.samples[:c], out.estimates[:c], out.frame_end[:c], out.messages[:f],
+                        out.words[:f],
                         out.values[:f],
                     )
                 )  # fmt: skip
@@ -328,6 +363,7 @@ def drive_blocks(
                     float(state[dr.DR_BREAK_TO]),
                     segments,
                     int(state[dr.DR_BREAK_CYCLES]) - cycles0,
+                    block.offset + position,
                 )
                 if len(stats.breaks) < MAX_BREAKS_KEPT:
                     stats.breaks.append(brk)
@@ -362,7 +398,8 @@ def drive_log(
     * Cycles every sample time from `start` (default: the first frame's stamp); the frames stamped up to a
       cycle's time belong to it; cycles go on until the last frame has been consumed. Per cycle,
       ``on_frames(now, output frames)`` (if given) and then ``on_cycle(now, Estimates)``; both are called after
-      the compiled loop has run a chunk of cycles, in cycle order (the Estimates given are a row of the chunk).
+      the compiled loop has run a chunk of cycles, in cycle order (the Estimates given are a row of the chunk,
+      ``runner.sample`` holds the Sample that cycle's step received).
     * A frame stamped at most `reorder_tolerance` before the newest stamp seen (out of order, as a CAN log of
       several nodes has) is taken as it comes: into the cycle being collected, as a late frame on the live bus
       would be; if that cycle's predecessor already closed at or after its stamp it is counted in
@@ -383,7 +420,9 @@ def drive_log(
     def on_chunk(chunk: Chunk) -> None:
         if on_frames is None and on_cycle is None:
             return
+        sample = runner.sample
         for c, now in enumerate(chunk.times.tolist()):
+            sample[:] = chunk.samples[c]  # in the callbacks, the runner's Sample is the cycle's, as in a live cycle
             if on_frames is not None:
                 on_frames(now, chunk.frames(encoder, c))
             if on_cycle is not None:

@@ -23,7 +23,14 @@ import numpy as np
 from numba import njit
 
 from ptw_rt.core.estimator import packed_step
-from ptw_rt.core.layout import E_MODE, ESTIMATES_SIZE, MODE_CONVERGING, MODE_DEGRADED, MODE_VALID
+from ptw_rt.core.layout import (
+    E_MODE,
+    ESTIMATES_SIZE,
+    MODE_CONVERGING,
+    MODE_DEGRADED,
+    MODE_VALID,
+    SAMPLE_SIZE,
+)
 from ptw_rt.core.stage import Layout
 from ptw_rt.edge import encoding as en
 from ptw_rt.edge import tracking as tr
@@ -107,6 +114,7 @@ def _close_cycle(
     process: np.ndarray,
     cycle_index: int,
     cycle_times: np.ndarray,
+    samples: np.ndarray,
     estimates: np.ndarray,
     frame_end: np.ndarray,
     messages: np.ndarray,
@@ -134,6 +142,8 @@ def _close_cycle(
         f,
     )
     cycle_times[c] = now
+    for j in range(SAMPLE_SIZE):
+        samples[c, j] = sample[j]
     for j in range(ESTIMATES_SIZE):
         estimates[c, j] = est[j]
     frame_end[c] = f + nf
@@ -164,6 +174,7 @@ def drive_block(
     estate: np.ndarray,
     process: np.ndarray,
     cycle_times: np.ndarray,
+    samples: np.ndarray,
     estimates: np.ndarray,
     frame_end: np.ndarray,
     messages: np.ndarray,
@@ -202,7 +213,7 @@ def drive_block(
                             break
                         f += _close_cycle(
                             now, c, f, tstate, tparams, sample, est, s, si, t, ti, plan, estate, process, cycles,
-                            cycle_times, estimates, frame_end, messages, words, values,
+                            cycle_times, samples, estimates, frame_end, messages, words, values,
                         )  # fmt: skip
                         c += 1
                         cycles += 1
@@ -244,7 +255,7 @@ def drive_block(
             break
         f += _close_cycle(
             now, c, f, tstate, tparams, sample, est, s, si, t, ti, plan, estate, process, cycles,
-            cycle_times, estimates, frame_end, messages, words, values,
+            cycle_times, samples, estimates, frame_end, messages, words, values,
         )  # fmt: skip
         c += 1
         cycles += 1
@@ -272,6 +283,7 @@ class Outputs:
 
     def __init__(self, capacity: int) -> None:
         self.cycle_times = np.zeros(capacity)
+        self.samples = np.zeros((capacity, SAMPLE_SIZE))
         self.estimates = np.zeros((capacity, ESTIMATES_SIZE))
         self.frame_end = np.zeros(capacity, dtype=np.int64)
         frames = capacity * en.N_OUTPUTS + en.N_OUTPUTS

@@ -437,11 +437,9 @@ class Daemon:
         runner.on_values("GPS_Velocity", t, signals)
 
     def _warm_up(self, runner: CycleRunner | None = None) -> None:
-        """Run the jitted step once before the loop (loading/compiling it takes far longer than a cycle)."""
-        runner = runner or self.runner
-        est = runner.estimator
-        est.step(runner.sample.copy(), runner.estimates.copy())
-        est.reset()
+        """Load every compiled function of the cycle before the loop (loading/compiling takes far longer than a
+        cycle): ``CycleRunner.warm_up``."""
+        (runner or self.runner).warm_up()
 
     # ------------------------------------------------------------------ state
 
