@@ -12,6 +12,7 @@ import sys
 from importlib import metadata
 from pathlib import Path
 
+from ptw_rt import _deferred_imports
 from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
 
@@ -313,6 +314,7 @@ def missing_extra(exc: ModuleNotFoundError) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    _deferred_imports.install()  # python-can's MF4 support (asammdf, pandas) only when a log needs it
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -47,22 +47,24 @@ from ptw_rt.core.layout import (
 )
 from ptw_rt.edge.cycle import (
     DEFAULT_MAX_GAP_S,
+    Block,
     Chunk,
     CycleRunner,
     DriveStats,
     SegmentBreak,
     build_runner,
+    decode_block,
     drive_blocks,
-    frame_blocks,
 )
+from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.errors import EXIT_OK, EXIT_OUTPUT, EXIT_PARTIAL, UserFacingError
+from ptw_rt.io.candump import FrameArrays
 from ptw_rt.io.logformats import (
     EXTENSIONS,
     EmptyLogError,
     LogFormatError,
-    LogStats,
     detect_format,
-    open_log,
+    open_log_arrays,
     open_writer,
     writer_format,
 )
@@ -81,49 +83,46 @@ MAX_TREE_DEPTH = 32  # directory levels searched for logs below a directory give
 
 
 class _Feed:
-    """The log's frames (``open_log``, any format) for the cycle driver as (timestamp, id, data); 29-bit frames
-    counted in ``skipped`` (remote, error and CAN FD frames in the reader's stats). Remembers the reader's
-    discontinuities of the time stamps with the index of the frame where each starts: the driver reads ahead in
-    blocks, so what it made of one (a new segment, ``on_segment``, or bridged, ``report_bridged`` once the log
-    is driven) is reported, one line each, once it is known. ``progress()`` is called every 4096 frames.
+    """The log's frames (``open_log_arrays``, any format) for the cycle driver as decoded blocks
+    (``decode_block``); 29-bit frames counted in ``skipped`` (remote, error and CAN FD frames in the reader's
+    stats). Remembers the reader's discontinuities of the time stamps with the index of the frame where each
+    starts: the driver reads ahead in blocks, so what it made of one (a new segment, ``on_segment``, or bridged,
+    ``report_bridged`` once the log is driven) is reported, one line each, once it is known. ``progress()`` is
+    called after every block.
     """
 
     def __init__(
         self,
-        first: tuple[float, int, bytes, bool],
-        frames: Iterator[tuple[float, int, bytes, bool]],
-        stats: LogStats,
+        first: FrameArrays,
+        blocks: Iterator[FrameArrays],
+        tracker: InputTracker,
         name: str,
         max_gap: float,
         progress: Callable[[], None] | None = None,
     ) -> None:
         self.first = first
-        self.frames = frames
-        self.stats = stats
+        self.blocks = blocks
+        self.tracker = tracker
         self.name = name
         self.max_gap = max_gap
         self.progress = progress
         self.skipped = 0
-        self._seen = 0  # reader discontinuities seen so far
         self._jumps: dict[int, tuple[int, float, float]] = {}  # frame index -> (line, from, to), not yet reported
 
-    def __iter__(self) -> Iterator[tuple[float, int, bytes]]:
-        reader = self.stats.reader  # the time rule's counts, read directly: this loop runs per frame
-        progress = self.progress
-        n = 0
-        for timestamp, frame_id, data, extended in itertools.chain((self.first,), self.frames):
-            if extended:
-                self.skipped += 1
-                continue
-            if reader.discontinuities != self._seen:
-                self._seen = reader.discontinuities
-                lines = reader.discontinuity_lines
-                if len(lines) >= self._seen:
-                    self._jumps[n] = lines[self._seen - 1]
-            yield timestamp, frame_id, data
-            n += 1
-            if progress is not None and not n & 4095:
-                progress()
+    def __iter__(self) -> Iterator[Block]:
+        offset = 0
+        for frames in itertools.chain((self.first,), self.blocks):
+            standard = ~frames.extended
+            kept = np.flatnonzero(standard)
+            self.skipped += len(frames) - kept.size
+            for jump in frames.jumps:  # the index among the frames kept (a 29-bit one: the next kept)
+                self._jumps[offset + int(np.searchsorted(kept, jump.index))] = jump[1:]
+            if kept.size != len(frames):
+                frames = FrameArrays(*(a[kept] for a in frames[:5]), frames.channel, [])
+            yield decode_block(self.tracker, frames.times, frames.ids, frames.lengths, frames.data, offset)
+            offset += len(frames)
+            if self.progress is not None:
+                self.progress()
 
     def report_bridged(self) -> None:
         """The discontinuities the driver went through without a new segment (the gap within --max-gap)."""
@@ -235,24 +234,24 @@ def replay_log(
     wall0 = time.perf_counter()
     runner = runner or build_runner(config, design_file)
     try:
-        frames, stats = open_log(in_path)
+        blocks, stats = open_log_arrays(in_path)
         # reported below, one line each, with what the replay did (bridged, or a new segment)
         stats.reader.warn_discontinuities = False
-        first = next(frames, None)
+        first = next(blocks, None)
     except OSError as exc:  # FileNotFoundError, permissions, a directory ...
         raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
     if first is None:
-        frames.close()
+        blocks.close()
         raise EmptyLogError(stats.no_frames_message())
     channel = (stats.channel if stats.format == "candump" else None) or DEFAULT_CHANNEL
     tick = None if progress is None else (lambda: progress.update(stats.fraction))
-    feed = _Feed(first, frames, stats, str(in_path), max_gap, tick)
+    feed = _Feed(first, blocks, runner.tracker, str(in_path), max_gap, tick)
     drive = DriveStats()
     mode_counts = [0] * len(MODE_NAMES)
     sensor_fault_cycles = 0
     last = np.zeros(len(ESTIMATE_NAMES))
     frames_out = 0
-    t_first = first[0]
+    t_first = float(first.times[0])
     t_last = t_first
     duration = 0.0
     csv: IO[str] | None = None
@@ -309,7 +308,7 @@ def replay_log(
 
         try:
             cycles = drive_blocks(
-                frame_blocks(feed, runner.tracker), runner, on_chunk, max_gap=max_gap, on_segment=on_segment,
+                feed, runner, on_chunk, max_gap=max_gap, on_segment=on_segment,
                 stats=drive,
             )  # fmt: skip
         except OSError as exc:  # output errors are ReplayOutputError by now: this is the input failing (EIO ...)
@@ -329,7 +328,7 @@ def replay_log(
                     close()  # a second close is a no-op
                 except Exception:  # noqa: BLE001 - already failing: the first error is the one reported
                     pass
-        frames.close()
+        blocks.close()
     if stats.malformed:
         log.warning("%s", stats.problems_line())
     wall = time.perf_counter() - wall0

@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, NamedTuple
@@ -57,6 +57,8 @@ __all__ = [
     "LogFrame",
     "format_line",
     "parse_line",
+    "FrameArrays",
+    "Jump",
     "read_log",
     "text_blocks",
     "timestamp_problem",
@@ -342,6 +344,97 @@ def text_blocks(read: Callable[[], str], max_chars: int = MAX_LINE_CHARS) -> Ite
         yield [rest]
 
 
+class Jump(NamedTuple):
+    """A discontinuity of the time stamps the time rule took: it starts at frame ``index`` of a ``FrameArrays``."""
+
+    index: int
+    line_no: int
+    t_from: float
+    t_to: float
+
+
+class FrameArrays(NamedTuple):
+    """Data frames of a log as columns (a block of them, in the time rule's order): stamps, identifiers, 29-bit
+    or not, DLCs and the bytes (``uint8[n, 8]``, zero-padded); the channel of the first, and the
+    discontinuities of the time stamps that start in the block."""
+
+    times: np.ndarray
+    ids: np.ndarray
+    extended: np.ndarray
+    lengths: np.ndarray
+    data: np.ndarray
+    channel: str | None
+    jumps: list[Jump]
+
+    @classmethod
+    def of(cls, frames: Sequence[LogFrame], jumps: list[Jump]) -> FrameArrays:
+        n = len(frames)
+        return cls(
+            np.fromiter((f.timestamp for f in frames), dtype=np.float64, count=n),
+            np.fromiter((f.frame_id for f in frames), dtype=np.int64, count=n),
+            np.fromiter((f.is_extended for f in frames), dtype=bool, count=n),
+            np.fromiter((len(f.data) for f in frames), dtype=np.int64, count=n),
+            _byte_rows([bytes(f.data) for f in frames]),
+            frames[0].channel if frames else None,
+            jumps,
+        )
+
+    def __len__(self) -> int:  # type: ignore[override]
+        return int(self.times.shape[0])
+
+    def concat(self, other: FrameArrays) -> FrameArrays:
+        jumps = self.jumps + [j._replace(index=j.index + len(self)) for j in other.jumps]
+        return FrameArrays(
+            *(np.concatenate((a, b)) for a, b in zip(self[:5], other[:5], strict=True)),
+            self.channel if len(self) else other.channel,
+            jumps,
+        )
+
+    def rows(self, start: int, stop: int) -> FrameArrays:
+        """Frames ``start..stop-1`` (the discontinuities among them re-indexed)."""
+        jumps = [j._replace(index=j.index - start) for j in self.jumps if start <= j.index < stop]
+        return FrameArrays(*(a[start:stop] for a in self[:5]), self.channel, jumps)
+
+
+def _byte_rows(payloads: Sequence[bytes]) -> np.ndarray:
+    """``uint8[n, 8]``: each payload (at most 8 bytes) zero-padded."""
+    joined = b"".join(p if len(p) == 8 else p.ljust(8, b"\0") for p in payloads)
+    return np.frombuffer(joined, dtype=np.uint8).reshape(len(payloads), 8)
+
+
+_FAST_WINDOW = 4096  # frames the time rule's column fast path checks at once
+_SLOW_RUN = 64  # frames then taken one by one when fewer than this passed it
+# a block of lines all in the plain form of _PLAIN_LINE_RE, matched at once (MULTILINE: one match per line)
+_PLAIN_BLOCK_RE = re.compile("^" + _PLAIN_LINE_RE.pattern + "$", re.MULTILINE)
+
+
+def _plain_columns(lines: list[str]) -> tuple[FrameArrays, tuple[str, ...]] | None:
+    """The frames of a block of lines as columns when every line is the plain line ``parse_line`` takes on its
+    fast path (with the same checks: stamp, id range, no '#' in the channel), with each line's channel; None
+    otherwise (the block then goes line by line)."""
+    if not lines or max(map(len, lines)) > MAX_LINE_CHARS:
+        return None
+    rows = _PLAIN_BLOCK_RE.findall("\n".join(lines))
+    n = len(rows)
+    if n != len(lines):
+        return None
+    stamps, channels, id_texts, payloads = zip(*rows, strict=True)
+    times = np.fromiter(map(float, stamps), dtype=np.float64, count=n)
+    if not times.max() <= MAX_TIMESTAMP or any("#" in c for c in set(channels)):
+        return None
+    known: dict[str, tuple[int, bool]] = {}
+    for text in set(id_texts):
+        value, extended = int(text, 16), len(text) == 8
+        if value > (_EXT_MAX if extended else _STD_MAX):
+            return None
+        known[text] = (value, extended)
+    ids = np.fromiter((known[t][0] for t in id_texts), dtype=np.int64, count=n)
+    extended = np.fromiter((known[t][1] for t in id_texts), dtype=bool, count=n)
+    lengths = np.fromiter(map(len, payloads), dtype=np.int64, count=n) // 2
+    data = np.frombuffer(bytes.fromhex("".join([p.ljust(16, "0") for p in payloads])), dtype=np.uint8)
+    return FrameArrays(times, ids, extended, lengths, data.reshape(n, 8), channels[0], []), channels
+
+
 class TimeRule(Iterator[LogFrame]):
     """The time rule of the module docstring, for the frames of any log format, with the counts of what it
     skipped. A subclass supplies ``_items()``: the log's records in file order, each a ``LogFrame`` (with
@@ -381,6 +474,7 @@ class TimeRule(Iterator[LogFrame]):
         self.rejected = dict.fromkeys(REJECT_REASONS, 0)
         self.reordered = 0
         self.discontinuities = 0
+        self.remote = 0  # remote frames left out by ``arrays`` (the per-frame iteration gives them)
         self.discontinuity_lines: list[tuple[int, float, float]] = []
         self.malformed_lines: list[int] = []
         self.problems: list[tuple[int, str]] = []
@@ -431,14 +525,55 @@ class TimeRule(Iterator[LogFrame]):
             if out:
                 self.frames += len(out)
                 yield from out
+        yield from self._end()
+
+    def _end(self) -> list[LogFrame]:
+        """The end of the log: what ``_finish`` releases, and the summary warnings."""
         out = self._finish()
         self.frames += len(out)
-        yield from out
         hidden = self.malformed - self.max_warnings
         if hidden > 0 and not self._quiet:
             log.warning("%s: %d more bad %ss skipped (%d in total)", self.name, hidden, self.unit, self.malformed)
         if self.discontinuities > self.max_warnings and self.warn_discontinuities:
             log.warning("%s: %d discontinuities of the time stamps in total", self.name, self.discontinuities)
+        return out
+
+    def _one(self, frame: LogFrame) -> list[LogFrame]:
+        """The time rule for one frame: what one turn of ``_rule``'s loop does (its fast path included)."""
+        last = self._last
+        if last is not None and not self._chains:
+            d = frame.timestamp - last
+            if 0.0 <= d <= self.max_jump:
+                self._last = frame.timestamp
+                self.frames += 1
+                return [frame]
+            if -self.reorder_tolerance <= d < 0.0:
+                self.reordered += 1
+                self.frames += 1
+                return [frame]
+        out = self._suspect(frame)
+        self.frames += len(out)
+        return out
+
+    def _rule_records(self, items: Iterable[LogFrame | Problem]) -> tuple[list[LogFrame], list[Jump]]:
+        """The time rule over some records: the data frames it gives (remote frames counted in ``remote`` and
+        left out) and the discontinuities that start at one of them (``Jump``: its index in that list)."""
+        out: list[LogFrame] = []
+        jumps: list[Jump] = []
+        for item in items:
+            if item.__class__ is Problem:
+                self._bad(*item)
+                continue
+            seen = self.discontinuities
+            got = self._one(item)
+            if self.discontinuities != seen and got and len(self.discontinuity_lines) >= self.discontinuities:
+                jumps.append(Jump(len(out), *self.discontinuity_lines[self.discontinuities - 1]))
+            for frame in got:
+                if frame.is_remote:
+                    self.remote += 1
+                else:
+                    out.append(frame)
+        return out, jumps
 
     def _consistent(self, t: float, reference: float) -> bool:
         return reference - self.reorder_tolerance <= t <= reference + self.max_jump
@@ -633,17 +768,89 @@ class CandumpReader(TimeRule):
     def _items(self) -> Iterator[LogFrame | Problem]:
         line_no = 0
         for block in self._blocks():
-            for line in block:
-                line_no += 1
-                if len(line) > MAX_LINE_CHARS:
-                    yield Problem(line_no, f"line longer than {MAX_LINE_CHARS} characters", line, "too_long")
+            yield from self._block_items(block, line_no)
+            line_no += len(block)
+
+    def _block_items(self, block: list[str], line_no: int) -> Iterator[LogFrame | Problem]:
+        """The records of a block of lines whose first is line ``line_no + 1`` (what ``_items`` gives)."""
+        for line in block:
+            line_no += 1
+            if len(line) > MAX_LINE_CHARS:
+                yield Problem(line_no, f"line longer than {MAX_LINE_CHARS} characters", line, "too_long")
+                continue
+            try:
+                yield parse_line(line, line_no)
+            except BadTimestampError as exc:
+                yield Problem(line_no, str(exc), line, "bad_timestamp")
+            except ValueError as exc:
+                yield Problem(line_no, str(exc), line, "malformed")
+
+    def arrays(self) -> Iterator[FrameArrays]:
+        """The log's data frames through the time rule as columns, a block of lines (~1 MiB) at a time: the same
+        frames, counts and discontinuities as iterating the reader (tested), remote frames counted in
+        ``remote``. A block whose lines are all plain, on an accepted time base, is parsed and ruled as
+        whole columns (numpy); any other goes record by record."""
+        try:
+            line_no = 0
+            for block in self._blocks():
+                first = line_no
+                line_no += len(block)
+                plain = _plain_columns(block)
+                if plain is not None:
+                    out = self._rule_columns(*plain, first)
+                else:
+                    out = FrameArrays.of(*self._rule_records(self._block_items(block, first)))
+                if len(out):
+                    yield out
+            tail = []
+            for frame in self._end():
+                if frame.is_remote:
+                    self.remote += 1
+                else:
+                    tail.append(frame)
+            if tail:
+                yield FrameArrays.of(tail, [])
+        finally:
+            self._release()
+
+    def _rule_columns(self, frames: FrameArrays, channels: tuple[str, ...], first_line: int) -> FrameArrays:
+        """The time rule on a block of parsed lines: while a time base is accepted and no candidate pending, its
+        fast path on whole columns (a window of frames at a time: each within the tolerances of the newest stamp
+        before it is taken, as ``_one`` takes it); frame by frame (``_rule_records``) otherwise, for at least
+        ``_SLOW_RUN`` frames so that a log full of outliers costs no more than going frame by frame."""
+        n = len(frames)
+        parts: list[FrameArrays] = []
+        i = 0
+        while i < n:
+            if self._last is not None and not self._chains:
+                stop = min(n, i + _FAST_WINDOW)
+                times = frames.times[i:stop]
+                newest = np.maximum.accumulate(np.concatenate(([self._last], times)))
+                d = times - newest[:-1]
+                fast = (d >= -self.reorder_tolerance) & (d <= self.max_jump)
+                k = times.size if fast.all() else int(np.argmin(fast))
+                if k:
+                    self.frames += k
+                    self.reordered += int(np.count_nonzero(d[:k] < 0.0))
+                    self._last = float(newest[k])
+                    parts.append(frames.rows(i, i + k))
+                    i += k
+                if k >= _SLOW_RUN or i == n:
                     continue
-                try:
-                    yield parse_line(line, line_no)
-                except BadTimestampError as exc:
-                    yield Problem(line_no, str(exc), line, "bad_timestamp")
-                except ValueError as exc:
-                    yield Problem(line_no, str(exc), line, "malformed")
+            stop = min(n, i + _SLOW_RUN)
+            records = [
+                LogFrame(float(frames.times[r]), channels[r], int(frames.ids[r]),
+                         frames.data[r, : frames.lengths[r]].tobytes(), first_line + 1 + r, bool(frames.extended[r]))
+                for r in range(i, stop)
+            ]  # fmt: skip
+            parts.append(FrameArrays.of(*self._rule_records(records)))
+            i = stop
+        if len(parts) == 1:
+            return parts[0]
+        out = FrameArrays.of([], [])
+        for part in parts:
+            out = out.concat(part)
+        return out
 
     def __enter__(self) -> CandumpReader:
         return self

@@ -41,12 +41,15 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
+from ptw_rt import _deferred_imports
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import (
     MAX_LOG_BYTES,
     CandumpFileError,
     CandumpReader,
     CandumpWriter,
+    FrameArrays,
+    Jump,
     LogFrame,
     Problem,
     TimeRule,
@@ -62,6 +65,7 @@ __all__ = [
     "EmptyLogError",
     "LogFormatError",
     "LogStats",
+    "open_log_arrays",
     "NotACanLogError",
     "detect_format",
     "format_of_extension",
@@ -89,6 +93,7 @@ MAX_TEXT_LINE = 1024  # ASC/TRC lines of CAN FD frames reach ~400 characters; ou
 MAX_BLF_OBJECT = 16 << 20  # an object, a container and a container's unpacked data (writers use 128 KiB)
 MAX_MF4_RATIO = 1100  # deflate expands at most ~1032x: more records than this allows are a lie
 _READ_CHUNK = 1 << 20
+ARRAY_BLOCK_FRAMES = 32768  # open_log_arrays: frames of a non-candump log gathered per block
 _EXAMPLES = 3
 _STD_MAX = 0x7FF
 
@@ -663,13 +668,8 @@ class _Mf4Reader(_MessageReader):
         return self._done
 
     def _items(self) -> Iterator[LogFrame | Problem]:
-        try:
-            from can.io.mf4 import MF4Reader
-        except ImportError:  # pragma: no cover - python-can without mf4.py
-            MF4Reader = None  # noqa: N806
-        try:
-            import asammdf  # noqa: F401
-        except ModuleNotFoundError:
+        MF4Reader = _deferred_imports.mf4().MF4Reader  # noqa: N806
+        if _deferred_imports.mf4().asammdf is None:
             raise LogFormatError(
                 f"{self.path}: reading MF4 needs the 'mf4' extra (asammdf is not installed): pip install 'ptw-rt[mf4]'"
             ) from None
@@ -785,6 +785,69 @@ def _frames(reader: TimeRule, stats: LogStats) -> Iterator[tuple[float, int, byt
         reader.close()
 
 
+def open_log_arrays(
+    path: str | Path,
+    *,
+    fmt: str | None = None,
+    max_warnings: int | None = None,
+    max_bytes: int = MAX_LOG_BYTES,
+    size: int = ARRAY_BLOCK_FRAMES,
+    **rules: Any,
+) -> tuple[Iterator[FrameArrays], LogStats]:
+    """``open_log`` as blocks of columns (``FrameArrays``: the same frames in the same order, with the
+    discontinuities of the time stamps that start in each block): a candump log parsed a block of lines at a
+    time (``CandumpReader.arrays``), any other format's frames gathered ``size`` at a time."""
+    path = Path(path)
+    if fmt is None:
+        fmt, nbytes = detect_format(path, max_bytes, warn=True)
+    else:
+        nbytes = path.stat().st_size if path.is_file() else 0
+    if fmt == "candump":
+        reader = CandumpReader(path, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
+        stats = LogStats(path, fmt, nbytes, reader)
+        return _candump_arrays(reader, stats), stats
+    frames, stats = open_log(path, fmt=fmt, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
+    return _gathered(frames, stats, size), stats
+
+
+def _candump_arrays(reader: CandumpReader, stats: LogStats) -> Iterator[FrameArrays]:
+    try:
+        for block in reader.arrays():
+            if stats.channel is None:
+                stats.channel = block.channel
+            if reader.remote:
+                stats.skipped["remote"] = reader.remote
+            yield block
+        if reader.remote:
+            stats.skipped["remote"] = reader.remote
+    finally:
+        reader.close()
+
+
+def _gathered(frames: Iterator[tuple[float, int, bytes, bool]], stats: LogStats, size: int) -> Iterator[FrameArrays]:
+    reader = stats.reader
+    seen = 0
+    try:
+        while True:
+            batch: list[LogFrame] = []
+            jumps: list[Jump] = []
+            for timestamp, frame_id, data, extended in frames:
+                if reader.discontinuities != seen:  # this frame starts a time base the rule took
+                    seen = reader.discontinuities
+                    if len(reader.discontinuity_lines) >= seen:
+                        jumps.append(Jump(len(batch), *reader.discontinuity_lines[seen - 1]))
+                batch.append(LogFrame(timestamp, stats.channel or "", frame_id, bytes(data), 0, extended))
+                if len(batch) == size:
+                    break
+            if not batch:
+                return
+            yield FrameArrays.of(batch, jumps)
+            if len(batch) < size:
+                return
+    finally:
+        frames.close()
+
+
 # ---------------------------------------------------------------------- writers
 
 
@@ -799,9 +862,7 @@ class _PycanWriter:
         self._message = can.Message
         self.lines_written = 0
         if fmt == "mf4":
-            try:
-                import asammdf  # noqa: F401
-            except ModuleNotFoundError:
+            if _deferred_imports.mf4().asammdf is None:
                 raise LogFormatError(
                     f"{path}: writing MF4 needs the 'mf4' extra (asammdf is not installed): pip install 'ptw-rt[mf4]'"
                 ) from None
@@ -857,7 +918,9 @@ def _Mf4BulkWriter(path: Path) -> Any:  # noqa: N802 - a class made on first use
     """python-can's ``MF4Writer`` with the data frames appended in blocks of 4096, not one asammdf call per frame
     (~0.4 ms each: 12 s for a 120 s ride's estimates); the file is the one ``MF4Writer`` writes."""
     import numpy as np
-    from can.io.mf4 import STD_DTYPE, MF4Writer
+
+    mf4 = _deferred_imports.mf4()
+    STD_DTYPE, MF4Writer = mf4.STD_DTYPE, mf4.MF4Writer  # noqa: N806
 
     class Writer(MF4Writer):
         BLOCK = 4096
