@@ -50,6 +50,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import faulthandler
+import gc
 import logging
 import math
 import signal
@@ -345,6 +346,9 @@ class Daemon:
         self._saver: threading.Thread | None = None
         self._warm_up()
         self._restore_state()
+        # everything built so far lives as long as the daemon: out of the garbage collector's full passes,
+        # which would otherwise walk it (numba's and cantools' objects) from inside the loop
+        gc.freeze()
 
     # ------------------------------------------------------------------ control
 
