@@ -99,8 +99,10 @@ def hostile_ride(seed: int, seconds: float = 12.0) -> list[tuple[float, int, obj
         r = rng.random()
         if r < 0.01:
             data = bytes(rng.randrange(256) for _ in range(len(data)))
-        elif r < 0.015:
+        elif r < 0.0125:
             data = data[:-1]
+        elif r < 0.015:
+            data = data + b"\x00"  # longer than its DBC length: undecodable too
         elif r < 0.02:
             out.append((t, 0x123, b"\x01\x02"))
         elif r < 0.025 and out:
