@@ -23,6 +23,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "untrusted",
         "schema",
         "_numba_cache",
+        "_deferred_imports",
         "progress",
     ),  # shared plumbing: no project imports beyond these
     ("model",),  # vehicle parameters, Sharp's matrices
