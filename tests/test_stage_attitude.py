@@ -67,3 +67,25 @@ def test_standstill_reads_the_gyro_biases(settings, design):
     att.STAGE.reset_state(b.state)
     att.attitude_stage(b.state, b.params, b.outputs, _inputs(0.004, -0.002, 0.003, 0.0, -G), speed)
     assert b.outputs[att.OUT_BP] == pytest.approx(0.004, abs=2e-4)
+
+
+def test_a_held_rate_grows_the_roll_uncertainty_with_the_length_of_the_hold(settings, design):
+    """Integrating a held rate repeats one unknown error every cycle: after n held cycles the roll may be
+    n x UNMEASURED_RATE_SD x dt off, not sqrt(n) x: the roll's variance grows by (2n - 1) (sd dt)^2 per cycle."""
+    b = att.STAGE.alone(settings, design)
+    st = b.state
+    P = st[att.ST_P : att.ST_P + att.N_X * att.N_X].reshape((att.N_X, att.N_X))
+    dt = float(design.sample_time)
+    args = (0.0, 0.0, 0.0, 0.0, -9.81, 15.0, 0.1, True, True, 0.0, False, False)
+    for _ in range(5):
+        att.attitude_step(st, b.outputs, b.params, *args)
+    held = list(args)
+    held[7] = held[8] = False  # rates not this cycle's, no accelerometer: the prediction alone
+    var0 = P[att.X_PHI, att.X_PHI]
+    for _ in range(20):
+        att.attitude_step(st, b.outputs, b.params, *held)
+    grown = P[att.X_PHI, att.X_PHI] - var0
+    assert grown >= (20 * att.UNMEASURED_RATE_SD * dt) ** 2
+    assert st[att.ST_HELD] == 20
+    att.attitude_step(st, b.outputs, b.params, *args)
+    assert st[att.ST_HELD] == 0

@@ -90,3 +90,36 @@ def test_gps_age_and_course(stage):
     assert out[inp.OUT_COURSE_NEW] == 0.0 and out[inp.OUT_COURSE] == 0.0
     out = run(stage, sample(fresh=fresh | lay.MSG_GPS))
     assert out[inp.OUT_GPS_LOST] == 0.0
+
+
+def test_a_gyro_step_no_body_can_make_is_held_until_it_persists(stage):
+    """A rate 2.2 rad/s from the last sound one within 10 ms is a corrupt sample (within the range check): held
+    and flagged, the rates marked not this cycle's, until the time since the last sound rate allows that much
+    change (RATE_NOISE_STEP + MAX_ANGULAR_ACCEL x that time) or it persisted RATE_RESYNC cycles."""
+    for _ in range(3):
+        out = run(stage, sample(p=0.1))
+    assert out[inp.OUT_RATES_OK] == 1.0
+    out = run(stage, sample(p=0.1 + inp.RATE_NOISE_STEP + 0.2))  # a quick but possible change: taken
+    assert out[inp.OUT_RATES_OK] == 1.0 and int(out[inp.OUT_REASONS]) == 0
+    last = out[inp.OUT_RAW + inp.RAW_P]
+    dt = 0.01
+    held = 0
+    while inp.RATE_NOISE_STEP + inp.MAX_ANGULAR_ACCEL * dt * (held + 1) < 3.0 - last and held < inp.RATE_RESYNC:
+        out = run(stage, sample(p=3.0))
+        assert out[inp.OUT_RAW + inp.RAW_P] == last and out[inp.OUT_RATES_OK] == 0.0
+        assert int(out[inp.OUT_REASONS]) & lay.REASON_OUT_OF_RANGE
+        held += 1
+    assert held >= 4
+    out = run(stage, sample(p=3.0))  # it persisted long enough to be a motion: the sensor really says so
+    assert out[inp.OUT_RAW + inp.RAW_P] == 3.0 and out[inp.OUT_RATES_OK] == 1.0
+
+
+def test_the_gyro_step_allowed_grows_with_the_time_without_sound_rates(stage):
+    """After a dropout the body may have turned faster: what was held for n cycles allows a step n times larger
+    (an out-of-range value replaced by the last one is no sound rate either)."""
+    run(stage, sample(p=0.0))
+    for _ in range(8):
+        out = run(stage, sample(p=1e6))  # out of range: replaced, not sound
+        assert out[inp.OUT_RATES_OK] == 0.0
+    out = run(stage, sample(p=2.0))  # 2 rad/s in 90 ms: within 0.5 + 30 x 0.09
+    assert out[inp.OUT_RAW + inp.RAW_P] == 2.0 and out[inp.OUT_RATES_OK] == 1.0

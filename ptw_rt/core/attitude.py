@@ -84,6 +84,7 @@ STATE = Layout(
     inconsistent_for=1,  # s the monitor has still to hold its alarm
     reacquired=1,  # 1 once this alarm has reopened the biases (once per alarm)
     course_rejected=1,  # consecutive GPS course fixes gated out
+    held=1,  # consecutive cycles that integrated a held rate
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -102,11 +103,18 @@ STATE = Layout(
     ST_INCONSISTENT_FOR,
     ST_REACQUIRED,
     ST_COURSE_REJECTED,
+    ST_HELD,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
 # rad/s: what a rate not measured this cycle (held, frozen or corrupt frames) may be, as far as the filter knows
 UNMEASURED_RATE_SD = 0.5
+# The accelerometer's specific force is trusted for the lateral-force and the gravity constraints only while its
+# magnitude is one a riding vehicle has (braking at 1 g beside gravity is 1.4 g; a pothole's spike is not a
+# measurement of the lean): outside, that cycle's accelerometer is not used (a garbage sample of 4 m/s^2 that
+# passed every range check once corrected the roll 6 deg the wrong way with a collapsed uncertainty)
+ACCEL_TRUSTED_MIN_G = 0.5
+ACCEL_TRUSTED_MAX_G = 2.0
 # s between GPS fixes: the contract's 10 Hz GPS_Velocity (a slower serial receiver only makes the course's
 # running mean in the consistency monitor shorter, in fixes, and so less sensitive, never more)
 GPS_FIX_INTERVAL = 0.1
@@ -559,9 +567,15 @@ def attitude_step(
         P[i, X_AV] -= dt * FP[i, X_AV] / ta
     P[X_PHI, X_PHI] += prm[A_Q_ROLL] ** 2 * dt
     P[X_PSI, X_PSI] += prm[A_Q_HEADING] ** 2 * dt
-    if not rates_ok:  # integrated a held rate: the roll and heading may have moved by anything plausible
-        P[X_PHI, X_PHI] += (UNMEASURED_RATE_SD * dt) ** 2
-        P[X_PSI, X_PSI] += (UNMEASURED_RATE_SD * dt) ** 2
+    if not rates_ok:
+        # integrated a held rate: its error is the same every held cycle, so the roll's and heading's grow with
+        # the run's length (n held cycles: n UNMEASURED_RATE_SD dt), not with its square root
+        st[ST_HELD] += 1.0
+        grow = (2.0 * st[ST_HELD] - 1.0) * (UNMEASURED_RATE_SD * dt) ** 2
+        P[X_PHI, X_PHI] += grow
+        P[X_PSI, X_PSI] += grow
+    else:
+        st[ST_HELD] = 0.0
     qb = prm[A_Q_GYRO_BIAS] ** 2 * dt
     P[X_BP, X_BP] += qb
     P[X_BQ, X_BQ] += qb
@@ -648,6 +662,8 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         and abs(raw[inp.RAW_R] - st[ST_X + X_BR]) < prm[A_CAL_MAX_RATE]
     )
     speed_sd = 0.1 + 0.5 * min(inputs[inp.OUT_GPS_AGE], 10.0)
+    force = math.sqrt(raw[inp.RAW_AX] ** 2 + raw[inp.RAW_AY] ** 2 + raw[inp.RAW_AZ] ** 2)
+    accel_plausible = ACCEL_TRUSTED_MIN_G * prm[A_G] <= force <= ACCEL_TRUSTED_MAX_G * prm[A_G]
     attitude_step(
         st,
         out,
@@ -660,7 +676,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         u if speed_known else 0.0,
         speed_sd if speed_known else 30.0,
         inputs[inp.OUT_RATES_OK] != 0.0,
-        inputs[inp.OUT_ACCEL_TRUSTED] != 0.0,
+        inputs[inp.OUT_ACCEL_TRUSTED] != 0.0 and accel_plausible,
         inputs[inp.OUT_COURSE],
         inputs[inp.OUT_COURSE_NEW] != 0.0,
         standstill,

@@ -1,7 +1,8 @@
 """Stage 1, inputs: plausibility and hold of the raw sensor values of one Sample (jitted, allocation-free).
 
 A non-finite or implausible value (beyond the configured limits) is replaced by the last good one and flagged
-(REASON_OUT_OF_RANGE); a stale message, or one whose rolling counter broke this cycle (S_SUSPECT: its payload
+(REASON_OUT_OF_RANGE), and so are gyro rates that step further than the body can turn (``MAX_ANGULAR_ACCEL``);
+a stale message, or one whose rolling counter broke this cycle (S_SUSPECT: its payload
 may be garbage), is held; a steer-encoder jump larger than the steering can turn in one cycle is a corrupt
 frame and held, unless it persists for ``steer_resync`` cycles (then the encoder really is there, e.g. after
 a long silence). GPS: a new fix with at least a 2D solution is usable; its age decides GPS_LOST.
@@ -53,8 +54,20 @@ STATE = Layout(
     steer_jumps=1,  # consecutive implausible steer-encoder jumps
     gps_age=1,  # s since the last usable GPS fix
     init=1,  # 1 once a sample has been seen
+    rate_jumps=1,  # consecutive cycles with an implausible step of a gyro rate
+    rates_age=1,  # cycles since the last new and sound rates (the baseline of the step check)
 )
-ST_LAST, ST_STEER_JUMPS, ST_GPS_AGE, ST_INIT = STATE.offsets
+ST_LAST, ST_STEER_JUMPS, ST_GPS_AGE, ST_INIT, ST_RATE_JUMPS, ST_RATES_AGE = STATE.offsets
+
+# The body cannot change its rotation rate faster than this: a scooter's quickest roll or yaw flick is ~20 rad/s^2
+# (30 deg of lean reversed in half a second); gyro noise and engine vibration are a fraction of RATE_NOISE_STEP.
+# A rate further from the last sound one than RATE_NOISE_STEP + MAX_ANGULAR_ACCEL x the time since it is a corrupt
+# sample (a garbage payload that passed the edge's range check once drove the gyro-integrated roll 7 deg off,
+# published VALID): held and flagged like an out-of-range one, unless it persists RATE_RESYNC cycles (the sensor
+# really says so).
+MAX_ANGULAR_ACCEL = 30.0  # rad/s^2
+RATE_NOISE_STEP = 0.5  # rad/s
+RATE_RESYNC = 10  # cycles
 
 PARAMS = Layout(
     "P_",
@@ -141,6 +154,7 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
         S_STEER_COUNT,
         S_GPS_SPEED,
     )
+    rates_replaced = False
     for k in range(N_RAW):
         v = sample[src[k]]
         if k < 3:
@@ -157,14 +171,29 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
         else:
             raw[k] = st[ST_LAST + k]
             reasons_now |= REASON_OUT_OF_RANGE
+            if k < 3:
+                rates_replaced = True
     # a stale message, or one whose rolling counter broke this cycle (its payload may be garbage): held
     held = stale | int(sample[S_SUSPECT])
     if held & MSG_IMU_RATES:
         for k in range(3):
             raw[k] = st[ST_LAST + k]
-    if held & MSG_IMU_ACCEL:
-        for k in range(3, 6):
-            raw[k] = st[ST_LAST + k]
+    elif st[ST_INIT] != 0.0:  # a step no body can make since the last sound rates: a corrupt sample
+        step = RATE_NOISE_STEP + MAX_ANGULAR_ACCEL * dt * (st[ST_RATES_AGE] + 1.0)
+        jumped = False
+        for k in range(3):
+            if abs(raw[k] - st[ST_LAST + k]) > step:
+                jumped = True
+        if jumped and st[ST_RATE_JUMPS] < RATE_RESYNC:
+            st[ST_RATE_JUMPS] += 1.0
+            for k in range(3):
+                raw[k] = st[ST_LAST + k]
+            reasons_now |= REASON_OUT_OF_RANGE
+            rates_replaced = True
+        else:
+            st[ST_RATE_JUMPS] = 0.0
+    if rates_replaced:  # some rate of this cycle is a held value: the rates are not this cycle's measurement
+        held |= MSG_IMU_RATES
     if held & MSG_STEER:
         raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
     elif st[ST_INIT] != 0.0:
@@ -180,6 +209,7 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
             st[ST_STEER_JUMPS] = 0.0
     for k in range(N_RAW):
         st[ST_LAST + k] = raw[k]
+    st[ST_RATES_AGE] = 0.0 if (held & MSG_IMU_RATES) == 0 else st[ST_RATES_AGE] + 1.0
     if stale != 0:
         reasons_now |= REASON_STALE
 
