@@ -253,3 +253,41 @@ def test_candump_columns_equal_the_frame_by_frame_reader(tmp_path):
             (line, to) for line, _, to in one_by_one.discontinuity_lines
         ]
         assert all(whole.times[j.index] == j.t_to for j in whole.jumps)
+
+
+_ENCODE_SCRIPT = """
+import json, sys
+import numpy as np
+from ptw_rt.edge.outputs import OutputEncoder
+from ptw_rt.io.dbc import FrameCodec
+rng = np.random.default_rng(11)
+enc = OutputEncoder(FrameCodec())
+out = []
+for k in range(300):
+    est = rng.uniform(-5e4, 5e4, 46) * rng.choice([1e-5, 1e-3, 1.0], 46)
+    est[MODE] = rng.integers(0, 5)
+    est[VALID] = rng.integers(0, 1 << 12)
+    status = {"overrun_count": k, "cycle_time_us": 3 * k}
+    out.append([[fid, data.hex()] for fid, data in enc.frames(est, k, status, k % 16)])
+print(json.dumps(out))
+"""
+
+
+def test_the_encoder_is_the_same_with_numba_off():
+    """The compiled functions are plain Python when numba is off (NUMBA_DISABLE_JIT=1: debugging, the bench's
+    no-JIT figure): the same frames, bit for bit, the 64-bit words included."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from ptw_rt.core.layout import E_MODE, E_VALID
+
+    script = _ENCODE_SCRIPT.replace("MODE", str(E_MODE)).replace("VALID", str(E_VALID))
+    runs = []
+    for off in ("0", "1"):
+        env = dict(os.environ, NUMBA_DISABLE_JIT=off)
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        runs.append(json.loads(done.stdout))
+    assert runs[0] == runs[1] and len(runs[0]) == 300

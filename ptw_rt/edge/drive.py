@@ -288,6 +288,6 @@ class Outputs:
         self.frame_end = np.zeros(capacity, dtype=np.int64)
         frames = capacity * en.N_OUTPUTS + en.N_OUTPUTS
         self.messages = np.zeros(frames, dtype=np.int64)
-        self.words = np.zeros(frames, dtype=np.int64)
+        self.words = np.zeros(frames, dtype=np.uint64)  # the frames little-endian (int64 in compiled code: its bits)
         self.values = np.zeros((frames, en.MAX_SIGNALS))
         self.counts = np.zeros(3, dtype=np.int64)  # next frame, cycles written, frames written

@@ -98,7 +98,7 @@ def _pack_word(plan: np.ndarray, b: int, n: int, values: np.ndarray) -> int:
     if seed >= 0:
         crc = seed
         for k in range(1, int(plan[b + EM_LENGTH])):
-            crc = _CRC8[crc ^ ((word >> (8 * k)) & 0xFF)]
+            crc = int(_CRC8[crc ^ ((word >> (8 * k)) & 0xFF)])
         word = (word & ~0xFF) | crc
     return word
 

@@ -217,7 +217,7 @@ class OutputEncoder:
         # per message: (frame id, length, plain, layout) to turn the encoder's rows into frames
         self._frame_of = tuple((layout.frame_id, layout.length, layout.plain, layout) for layout in self.layouts)
         self._messages = np.zeros(en.N_OUTPUTS, dtype=np.int64)
-        self._words = np.zeros(en.N_OUTPUTS, dtype=np.int64)
+        self._words = np.zeros(en.N_OUTPUTS, dtype=np.uint64)
         self._values = np.zeros((en.N_OUTPUTS, en.MAX_SIGNALS))
 
     def frame(self, m: int, word: int, values: np.ndarray) -> tuple[int, bytes]:
@@ -235,7 +235,7 @@ class OutputEncoder:
         index = messages.tolist()
         ids = [self._frame_of[m][0] for m in index]
         lengths = [self._frame_of[m][1] for m in index]
-        return ids, words.astype("<i8").view(np.uint8).reshape(-1, 8), lengths
+        return ids, words.astype("<u8", copy=False).view(np.uint8).reshape(-1, 8), lengths
 
     def status_frame(
         self,
