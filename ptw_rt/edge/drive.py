@@ -199,6 +199,7 @@ def drive_block(
     cycles = int(state[DR_CYCLES])
     result = DONE
     while True:
+        ends_segment = False  # the frame at i starts a new segment: close what was collected, return BREAK
         if i < n:
             ts = times[i]
             if not newest - reorder_tolerance <= ts <= newest + max_gap:
@@ -207,33 +208,16 @@ def drive_block(
                     i += 1
                     continue
                 if (consumed or seg_cycles > 0) and state[DR_RESUME] == 0.0:
-                    if consumed:  # close the cycle being collected: its frames belong to this segment
-                        if c >= capacity or f > frame_capacity:
-                            result = FULL
-                            break
-                        f += _close_cycle(
-                            now, c, f, tstate, tparams, sample, est, s, si, t, ti, plan, estate, process, cycles,
-                            cycle_times, samples, estimates, frame_end, messages, words, values,
-                        )  # fmt: skip
-                        c += 1
-                        cycles += 1
-                        consumed = False
-                    state[DR_SEGMENTS] += 1.0
-                    state[DR_BREAK_KIND] = 0.0 if ts > newest else 1.0
-                    state[DR_BREAK_FROM] = newest
-                    state[DR_BREAK_TO] = ts
-                    state[DR_BREAK_CYCLES] = cycles
-                    state[DR_RESUME] = 1.0
-                    result = BREAK
-                    break
-                state[DR_RESUME] = 0.0
-                t0 = ts
-                newest = ts
-                k = 1
-                now = t0 + dt
-                closed = -math.inf
-                seg_cycles = 0
-            if ts <= now:
+                    ends_segment = True
+                else:  # the segment starts at this frame (the caller has handled its break)
+                    state[DR_RESUME] = 0.0
+                    t0 = ts
+                    newest = ts
+                    k = 1
+                    now = t0 + dt
+                    closed = -math.inf
+                    seg_cycles = 0
+            if not ends_segment and ts <= now:
                 kind = kinds[i]
                 if kind == FRAME_OK:
                     tr.track_values(tstate, tparams, inputs[i], ts, frame_values[i], True)
@@ -250,20 +234,30 @@ def drive_block(
                 continue
         elif not (consumed and last_block):
             break  # DONE: the next block goes on from here (or, the log's last, nothing left to close)
-        if c >= capacity or f > frame_capacity:
-            result = FULL
+        if consumed or not ends_segment:  # the cycle at `now` closes (at a break: its frames are this segment's)
+            if c >= capacity or f > frame_capacity:
+                result = FULL
+                break
+            f += _close_cycle(
+                now, c, f, tstate, tparams, sample, est, s, si, t, ti, plan, estate, process, cycles,
+                cycle_times, samples, estimates, frame_end, messages, words, values,
+            )  # fmt: skip
+            c += 1
+            cycles += 1
+            consumed = False
+            closed = now
+            seg_cycles += 1
+            k += 1
+            now = t0 + k * dt
+        if ends_segment:
+            state[DR_SEGMENTS] += 1.0
+            state[DR_BREAK_KIND] = 0.0 if ts > newest else 1.0
+            state[DR_BREAK_FROM] = newest
+            state[DR_BREAK_TO] = ts
+            state[DR_BREAK_CYCLES] = cycles
+            state[DR_RESUME] = 1.0
+            result = BREAK
             break
-        f += _close_cycle(
-            now, c, f, tstate, tparams, sample, est, s, si, t, ti, plan, estate, process, cycles,
-            cycle_times, samples, estimates, frame_end, messages, words, values,
-        )  # fmt: skip
-        c += 1
-        cycles += 1
-        closed = now
-        consumed = False
-        seg_cycles += 1
-        k += 1
-        now = t0 + k * dt
     state[DR_T0] = t0
     state[DR_K] = k
     state[DR_NOW] = now

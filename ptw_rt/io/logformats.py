@@ -756,18 +756,7 @@ def open_log(
     file that cannot be read at all; never raises on a bad record (counted in the stats) except when the
     iterator meets a header it cannot read at all (``LogFormatError``).
     """
-    path = Path(path)
-    if fmt is None:
-        fmt, size = detect_format(path, max_bytes, warn=True)
-    else:
-        size = path.stat().st_size if path.is_file() else 0
-    if fmt == "candump":
-        reader: TimeRule = CandumpReader(path, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
-    else:
-        reader = _READERS[fmt](path, max_bytes, max_warnings=max_warnings, **rules)
-    stats = LogStats(path, fmt, size, reader)
-    if fmt != "candump":
-        stats.skipped = reader.skipped  # type: ignore[attr-defined]
+    reader, stats = _open_reader(Path(path), fmt, max_warnings, max_bytes, rules)
     return _frames(reader, stats), stats
 
 
@@ -797,17 +786,28 @@ def open_log_arrays(
     """``open_log`` as blocks of columns (``FrameArrays``: the same frames in the same order, with the
     discontinuities of the time stamps that start in each block): a candump log parsed a block of lines at a
     time (``CandumpReader.arrays``), any other format's frames gathered ``size`` at a time."""
-    path = Path(path)
+    reader, stats = _open_reader(Path(path), fmt, max_warnings, max_bytes, rules)
+    if stats.format == "candump":
+        return _candump_arrays(reader, stats), stats  # type: ignore[arg-type]
+    return _gathered(_frames(reader, stats), stats, size), stats
+
+
+def _open_reader(
+    path: Path, fmt: str | None, max_warnings: int | None, max_bytes: int, rules: dict[str, Any]
+) -> tuple[TimeRule, LogStats]:
+    """The reader of the log's format (``detect_format`` when not given) and its stats."""
     if fmt is None:
-        fmt, nbytes = detect_format(path, max_bytes, warn=True)
+        fmt, size = detect_format(path, max_bytes, warn=True)
     else:
-        nbytes = path.stat().st_size if path.is_file() else 0
+        size = path.stat().st_size if path.is_file() else 0
     if fmt == "candump":
-        reader = CandumpReader(path, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
-        stats = LogStats(path, fmt, nbytes, reader)
-        return _candump_arrays(reader, stats), stats
-    frames, stats = open_log(path, fmt=fmt, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
-    return _gathered(frames, stats, size), stats
+        reader: TimeRule = CandumpReader(path, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
+    else:
+        reader = _READERS[fmt](path, max_bytes, max_warnings=max_warnings, **rules)
+    stats = LogStats(path, fmt, size, reader)
+    if fmt != "candump":
+        stats.skipped = reader.skipped  # type: ignore[attr-defined]
+    return reader, stats
 
 
 def _candump_arrays(reader: CandumpReader, stats: LogStats) -> Iterator[FrameArrays]:
