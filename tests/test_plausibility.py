@@ -58,3 +58,25 @@ def test_a_steer_encoder_offset_is_flagged_within_half_a_second():
     assert FAULT_AT < first <= FAULT_AT + 0.5
     assert not (torque_valid & flagged).any()  # the torque is not VALID while the monitor objects
     assert not flagged[t < FAULT_AT].any()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("offset", [3, -3])
+def test_a_steer_encoder_offset_in_town_is_flagged_by_the_kinematics(offset):
+    """In town the offset moves both torques less than their normal disagreement (it took 17 s): the steer
+    angle against the kinematics (L r cos(roll) / (u cos(caster)), riding nearly straight) sees it in ~2 s, and
+    steer, steer rate and torque are not VALID while it objects."""
+    ev, flagged, torque_valid = _ride("urban", [f"steer_offset_step={offset}", f"fault_at={FAULT_AT}"])
+    t = ev.t
+    first = t[flagged & (t >= FAULT_AT)][0]
+    assert first <= FAULT_AT + 3.0
+    assert not flagged[t < FAULT_AT].any()
+    steer_valid = (ev.estimates[:, L.E_VALID].astype(int) & (L.V_STEER | L.V_STEER_RATE)) != 0
+    assert not steer_valid[np.flatnonzero(t == first)[0]]  # the kinematics' alarm: the steer itself is doubted
+    assert not (torque_valid & flagged).any()
+
+
+def test_the_steer_kinematics_check_stays_quiet_on_healthy_town_riding_with_other_tyres():
+    for perturb in (["stiffness=0.6"], ["mu_scale=0.8"], ["added_mass=80"]):
+        _, flagged, _ = _ride("urban", perturb)
+        assert not flagged.any(), perturb
