@@ -264,7 +264,7 @@ rng = np.random.default_rng(11)
 enc = OutputEncoder(FrameCodec())
 out = []
 for k in range(300):
-    est = rng.uniform(-5e4, 5e4, 46) * rng.choice([1e-5, 1e-3, 1.0], 46)
+    est = rng.uniform(-5e4, 5e4, SIZE) * rng.choice([1e-5, 1e-3, 1.0], SIZE)
     est[MODE] = rng.integers(0, 5)
     est[VALID] = rng.integers(0, 1 << 12)
     status = {"overrun_count": k, "cycle_time_us": 3 * k}
@@ -281,9 +281,10 @@ def test_the_encoder_is_the_same_with_numba_off():
     import subprocess
     import sys
 
-    from ptw_rt.core.layout import E_MODE, E_VALID
+    from ptw_rt.core.layout import E_MODE, E_VALID, ESTIMATES_SIZE
 
     script = _ENCODE_SCRIPT.replace("MODE", str(E_MODE)).replace("VALID", str(E_VALID))
+    script = script.replace("SIZE", str(ESTIMATES_SIZE))
     runs = []
     for off in ("0", "1"):
         env = dict(os.environ, NUMBA_DISABLE_JIT=off)

@@ -104,6 +104,8 @@ CONTRACT_OUTPUTS: dict[str, dict] = {
             "TorqueResidual": ("N m", 0.01, 0.0, 655.0),
             "PlausibilityRatio": (None, 0.001, 0.0, 65.0),
             "RiderTorqueUIHOSMO": ("N m", 0.01, -300.0, 300.0),
+            # added in v1.3: the steer-kinematics check's residual (0.5 deg = 0.0087 rad alarms), 3x its range
+            "SteerKinematicResidual": ("rad", 0.0002, -0.025, 0.025),
         },
     },
     "EST_Status": {

@@ -60,6 +60,7 @@ class Source:
                 "TorqueResidual": 2.0,
                 "PlausibilityRatio": 0.4,
                 "RiderTorqueUIHOSMO": 3.0,
+                "SteerKinematicResidual": 0.001,
             }
         if name == "EST_TireConfidence":
             return {

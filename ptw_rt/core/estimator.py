@@ -86,6 +86,7 @@ from ptw_rt.core.layout import (
     E_SPEED,
     E_STEER,
     E_STEER_RATE,
+    E_STEER_RESIDUAL,
     E_TORQUE_RESIDUAL,
     E_TORQUE_UIHOSMO,
     E_TORQUE_UIO_SENSORS,
@@ -196,6 +197,7 @@ def publish(
     est[E_TORQUE_UIO_SENSORS] = us[cus.OUT_TORQUE] if us[cus.OUT_VALID] != 0.0 else 0.0
     est[E_TORQUE_RESIDUAL] = o_sup[sup.OUT_TORQUE_RESIDUAL]
     est[E_PLAUSIBILITY] = o_sup[sup.OUT_PLAUSIBILITY]
+    est[E_STEER_RESIDUAL] = o_sup[sup.OUT_STEER_RESIDUAL]
     # last line of defence: nothing non-finite leaves the step
     for k in range(ESTIMATES_SIZE):
         if not math.isfinite(est[k]):

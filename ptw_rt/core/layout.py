@@ -122,7 +122,8 @@ E_C_GAMMA_REAR_SEED001 = 42
 E_TORQUE_UIO_SENSORS = 43  # N m, the UIHOSMO on the sensors' rider torque (issue #16; 0 while it is not valid)
 E_TORQUE_RESIDUAL = 44  # N m, windowed RMS of published - E_TORQUE_UIO_SENSORS (the plausibility monitor's)
 E_PLAUSIBILITY = 45  # that residual over its speed-dependent threshold: > 1 raises REASON_IMPLAUSIBLE
-ESTIMATES_SIZE = 46
+E_STEER_RESIDUAL = 46  # rad, running mean of steer - kinematic steer riding nearly straight (> 0.5 deg: implausible)
+ESTIMATES_SIZE = 47
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -183,6 +184,7 @@ ESTIMATE_NAMES = (
     "torque_uio_sensors",
     "torque_residual",
     "plausibility",
+    "steer_residual",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

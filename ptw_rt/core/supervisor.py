@@ -155,8 +155,11 @@ OUTPUTS = Layout(
     roll_sd=1,  # rad, standard deviation of the published roll (10 when unknown)
     torque_residual=1,  # N m, windowed RMS of published - UIHOSMO-on-sensors rider torque (0 while not compared)
     plausibility=1,  # that over its speed band's threshold (> 1: REASON_IMPLAUSIBLE)
+    steer_residual=1,  # rad, running mean of steer - kinematic steer (the steer-kinematics check's; 0 while stopped)
 )
-OUT_MODE, OUT_REASONS, OUT_VALID, OUT_ROLL_SD, OUT_TORQUE_RESIDUAL, OUT_PLAUSIBILITY = OUTPUTS.offsets
+OUT_MODE, OUT_REASONS, OUT_VALID, OUT_ROLL_SD, OUT_TORQUE_RESIDUAL, OUT_PLAUSIBILITY, OUT_STEER_RESIDUAL = (
+    OUTPUTS.offsets
+)
 
 
 def build_params(settings, design) -> np.ndarray:
@@ -288,6 +291,7 @@ def supervisor_stage(
         reasons_now |= REASON_ATTITUDE_INCONSISTENT
     implausible = _plausibility(st, prm, out, cond, diag, lateral, speed[spd.OUT_U])
     steer_implausible = _steer_kinematics(st, prm, cond, speed[spd.OUT_U])
+    out[OUT_STEER_RESIDUAL] = st[ST_STEER_RESIDUAL]
     if implausible or steer_implausible:
         reasons_now |= REASON_IMPLAUSIBLE
     # conditions that are states, not events, end as soon as they end

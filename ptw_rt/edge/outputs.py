@@ -28,6 +28,7 @@ from ptw_rt.core.layout import (
     E_ROLL_RATE,
     E_STEER,
     E_STEER_RATE,
+    E_STEER_RESIDUAL,
     E_TORQUE_RESIDUAL,
     E_TORQUE_UIO_SENSORS,
     E_TYRE_LEARNING,
@@ -82,6 +83,7 @@ SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
         ("TorqueResidual", E_TORQUE_RESIDUAL, 0),
         ("PlausibilityRatio", E_PLAUSIBILITY, 0),
         ("RiderTorqueUIHOSMO", E_TORQUE_UIO_SENSORS, 0),
+        ("SteerKinematicResidual", E_STEER_RESIDUAL, 0),
     ),
 }
 # group validity bits of EST_TireStiffness
