@@ -89,3 +89,36 @@ def test_a_held_rate_grows_the_roll_uncertainty_with_the_length_of_the_hold(sett
     assert st[att.ST_HELD] == 20
     att.attitude_step(st, b.outputs, b.params, *args)
     assert st[att.ST_HELD] == 0
+
+
+def test_a_burst_of_corrupt_input_reopens_the_biases_when_it_ends(settings, design):
+    """Garbage that passed every check may have moved the biases along what a steady turn cannot observe: after
+    a burst of BURST_CYCLES or more cycles of corrupt input, the biases' and the roll's variances are reopened
+    once, when it ends; a shorter one leaves them."""
+    from ptw_rt.core import layout as lay
+
+    b = att.STAGE.alone(settings, design)
+    u, r = 20.0, 0.05
+    roll = math.atan(u * r / G)
+    speed = spd.OUTPUTS.vector(u=u, known=1.0)
+    inputs = _inputs(0.0, r * math.sin(roll), r * math.cos(roll), 0.0, -G / math.cos(roll))
+
+    def ride(cycles, reasons):
+        inputs[inp.OUT_REASONS] = reasons
+        for _ in range(cycles):
+            att.attitude_stage(b.state, b.params, b.outputs, inputs, speed)
+
+    ride(300, 0)
+    P = b.state[att.ST_P : att.ST_P + att.N_X * att.N_X].reshape((att.N_X, att.N_X))
+    reopen = b.params[att.A_INIT_GYRO_BIAS_SD] ** 2
+    before = P[att.X_BR, att.X_BR]
+    ride(att.BURST_CYCLES - 1, lay.REASON_OUT_OF_RANGE)
+    ride(1, 0)
+    assert P[att.X_BR, att.X_BR] - before < 0.1 * reopen  # a short burst: nothing reopened
+    ride(att.BURST_GAP, 0)
+    before = P[att.X_BR, att.X_BR]
+    ride(att.BURST_CYCLES, lay.REASON_COUNTER_JUMPS)
+    assert P[att.X_BR, att.X_BR] - before < 0.1 * reopen  # not during the burst
+    phi_before = P[att.X_PHI, att.X_PHI]
+    ride(1, 0)
+    assert P[att.X_BR, att.X_BR] - before > 0.9 * reopen and P[att.X_PHI, att.X_PHI] > phi_before

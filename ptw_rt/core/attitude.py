@@ -46,7 +46,7 @@ from numba import njit
 
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
-from ptw_rt.core.layout import REASON_SPEED_LOW
+from ptw_rt.core.layout import REASON_COUNTER_JUMPS, REASON_DECODE_ERRORS, REASON_OUT_OF_RANGE, REASON_SPEED_LOW
 from ptw_rt.core.stage import Layout, Stage, all_finite
 
 # ---- filter state x ----
@@ -85,6 +85,8 @@ STATE = Layout(
     reacquired=1,  # 1 once this alarm has reopened the biases (once per alarm)
     course_rejected=1,  # consecutive GPS course fixes gated out
     held=1,  # consecutive cycles that integrated a held rate
+    corrupt_run=1,  # cycles with corrupt input in the current burst (clean gaps shorter than BURST_GAP allowed)
+    clean_run=1,  # consecutive cycles without corrupt input
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -104,6 +106,8 @@ STATE = Layout(
     ST_REACQUIRED,
     ST_COURSE_REJECTED,
     ST_HELD,
+    ST_CORRUPT_RUN,
+    ST_CLEAN_RUN,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -113,6 +117,15 @@ UNMEASURED_RATE_SD = 0.5
 # magnitude is one a riding vehicle has (braking at 1 g beside gravity is 1.4 g; a pothole's spike is not a
 # measurement of the lean): outside, that cycle's accelerometer is not used (a garbage sample of 4 m/s^2 that
 # passed every range check once corrected the roll 6 deg the wrong way with a collapsed uncertainty)
+# A burst of corrupt input (out-of-range values, broken counters, undecodable frames: garbage that reached the
+# sensors' frames) of at least BURST_CYCLES cycles, with clean gaps shorter than BURST_GAP: whatever of it passed
+# every check may have moved the biases along the direction a steady turn cannot observe (a roll error with
+# matching biases), so the biases' and the roll's uncertainty are reopened once per burst: the roll is VALID
+# again only when the data have pinned it down again (random garbage bursts into a steady turn: see
+# docs/estimator.md, "Known gaps").
+BURST_CYCLES = 10
+BURST_GAP = 10
+_CORRUPT_INPUT = REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
 ACCEL_TRUSTED_MIN_G = 0.5
 ACCEL_TRUSTED_MAX_G = 2.0
 # s between GPS fixes: the contract's 10 Hz GPS_Velocity (a slower serial receiver only makes the course's
@@ -681,6 +694,16 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         inputs[inp.OUT_COURSE_NEW] != 0.0,
         standstill,
     )
+    if reasons_now & _CORRUPT_INPUT:
+        st[ST_CORRUPT_RUN] += 1.0
+        st[ST_CLEAN_RUN] = 0.0
+    else:
+        st[ST_CLEAN_RUN] += 1.0
+        if st[ST_CLEAN_RUN] == 1.0 and st[ST_CORRUPT_RUN] >= BURST_CYCLES:
+            _reacquire_biases(st, prm)  # the burst is over (for now): what it left is doubted, once
+            st[ST_CORRUPT_RUN] = 0.0
+        if st[ST_CLEAN_RUN] >= BURST_GAP:
+            st[ST_CORRUPT_RUN] = 0.0
     out[OUT_OK] = 1.0 if st[ST_INIT] == 1.0 and all_finite(out, N_FILTER_OUT) else 0.0
     out[OUT_REJECTED_RUN] = st[ST_REJECTED]
     # re-learning the biases is for riding; at a stop the zero-rate calibration reads them, and a rider rocking
