@@ -123,3 +123,18 @@ def test_the_gyro_step_allowed_grows_with_the_time_without_sound_rates(stage):
         assert out[inp.OUT_RATES_OK] == 0.0
     out = run(stage, sample(p=2.0))  # 2 rad/s in 90 ms: within 0.5 + 30 x 0.09
     assert out[inp.OUT_RAW + inp.RAW_P] == 2.0 and out[inp.OUT_RATES_OK] == 1.0
+
+
+def test_the_encoders_first_value_and_one_after_a_silence_are_not_jumps(stage):
+    """Live, the loop runs before the encoder's first frame (stale, held at 0): its first value is no jump (it
+    once raised InputRange for the daemon's first second and doubted the attitude filter); after a silence of
+    n cycles the steering may have turned n x max_steer_step."""
+    for _ in range(5):
+        out = run(stage, sample(steer=0.0, stale=lay.MSG_STEER))
+    out = run(stage, sample(steer=512.0))
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 512.0 and not int(out[inp.OUT_REASONS]) & lay.REASON_OUT_OF_RANGE
+    step = stage.params[inp.P_MAX_STEER_STEP]
+    for _ in range(4):
+        run(stage, sample(steer=512.0, stale=lay.MSG_STEER))
+    out = run(stage, sample(steer=512.0 + 4.5 * step))  # 5 cycles since the last sound value
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 512.0 + 4.5 * step and int(out[inp.OUT_REASONS]) == 0

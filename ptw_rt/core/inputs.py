@@ -56,8 +56,10 @@ STATE = Layout(
     init=1,  # 1 once a sample has been seen
     rate_jumps=1,  # consecutive cycles with an implausible step of a gyro rate
     rates_age=1,  # cycles since the last new and sound rates (the baseline of the step check)
+    steer_seen=1,  # 1 once the encoder has given a sound value (before: nothing to compare a value with)
+    steer_age=1,  # cycles since its last sound value
 )
-ST_LAST, ST_STEER_JUMPS, ST_GPS_AGE, ST_INIT, ST_RATE_JUMPS, ST_RATES_AGE = STATE.offsets
+ST_LAST, ST_STEER_JUMPS, ST_GPS_AGE, ST_INIT, ST_RATE_JUMPS, ST_RATES_AGE, ST_STEER_SEEN, ST_STEER_AGE = STATE.offsets
 
 # The body cannot change its rotation rate faster than this: a scooter's quickest roll or yaw flick is ~20 rad/s^2
 # (30 deg of lean reversed in half a second); gyro noise and engine vibration are a fraction of RATE_NOISE_STEP.
@@ -196,17 +198,23 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
         held |= MSG_IMU_RATES
     if held & MSG_STEER:
         raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
-    elif st[ST_INIT] != 0.0:
-        # the steering cannot turn more than max_steer_step counts in one cycle; a bigger jump is a corrupt
-        # frame (unless it persists: then the encoder really is there, e.g. after a long silence)
+        st[ST_STEER_AGE] += 1.0
+    elif st[ST_STEER_SEEN] != 0.0:
+        # the steering cannot turn more than max_steer_step counts per cycle since its last sound value; a
+        # bigger jump is a corrupt frame (unless it persists: then the encoder really is there)
         jump = abs(raw[RAW_STEER] - st[ST_LAST + RAW_STEER])
         jump = min(jump, prm[P_STEER_CPR] - jump)  # across the wrap
-        if jump > prm[P_MAX_STEER_STEP] and st[ST_STEER_JUMPS] < prm[P_STEER_RESYNC]:
+        if jump > prm[P_MAX_STEER_STEP] * (st[ST_STEER_AGE] + 1.0) and st[ST_STEER_JUMPS] < prm[P_STEER_RESYNC]:
             st[ST_STEER_JUMPS] += 1.0
+            st[ST_STEER_AGE] += 1.0
             raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
             reasons_now |= REASON_OUT_OF_RANGE
         else:
             st[ST_STEER_JUMPS] = 0.0
+            st[ST_STEER_AGE] = 0.0
+    elif raw[RAW_STEER] == sample[S_STEER_COUNT]:  # the encoder's first sound value: nothing to compare it with
+        st[ST_STEER_SEEN] = 1.0
+        st[ST_STEER_AGE] = 0.0
     for k in range(N_RAW):
         st[ST_LAST + k] = raw[k]
     st[ST_RATES_AGE] = 0.0 if (held & MSG_IMU_RATES) == 0 else st[ST_RATES_AGE] + 1.0
