@@ -188,17 +188,22 @@ def test_unpack_many_equals_unpack():
             assert list(v) == layout.unpack(row[: layout.length].tobytes())
 
 
-def test_write_frames_equals_write_cycle(tmp_path):
+@pytest.mark.parametrize("fixed_width", [False, True])
+def test_write_frames_equals_write_cycle(tmp_path, fixed_width):
+    """Many frames at once, the same bytes as cycle by cycle: any lengths and id widths, and the fixed-width
+    block path (all frames 8 bytes, one id width: what replay writes), small stamps included."""
     rng = np.random.default_rng(5)
-    times = 1_700_000_000.0 + np.cumsum(rng.uniform(0.0, 0.02, 50))
+    times = (3.0 if fixed_width else 1_700_000_000.0) + np.cumsum(rng.uniform(0.0, 0.02, 50))
     counts = rng.integers(0, 4, 50)
     cycle_of = np.repeat(np.arange(50), counts)
-    ids = [int(i) for i in rng.choice([0x300, 0x301, 0x7FF, 0x12345], cycle_of.size)]
-    lengths = [int(n) for n in rng.integers(0, 9, cycle_of.size)]
+    choices = [0x300, 0x301, 0x7FF, 0x0] if fixed_width else [0x300, 0x301, 0x7FF, 0x12345]
+    ids = [int(i) for i in rng.choice(choices, cycle_of.size)]
+    lengths = [8] * cycle_of.size if fixed_width else [int(n) for n in rng.integers(0, 9, cycle_of.size)]
     data = rng.integers(0, 256, size=(cycle_of.size, 8), dtype=np.uint8)
     a, b = tmp_path / "a.log", tmp_path / "b.log"
     with CandumpWriter(a, channel="vcan0") as w:
         w.write_frames(times, cycle_of, ids, data, lengths)
+        w.write_frames(times[:0], cycle_of[:0], [], data[:0], [])
     with CandumpWriter(b, channel="vcan0") as w:
         for c, now in enumerate(times.tolist()):
             rows = np.flatnonzero(cycle_of == c)

@@ -279,7 +279,24 @@ class CandumpWriter:
             if frame_id not in texts:
                 line = format_line(0.0, self.channel, frame_id, b"")  # range check, as write does
                 texts[frame_id] = line[line.index(" ", line.index(" ") + 1) + 1 :]  # "ID#"
-        hexes = _HEX_DIGITS[np.ascontiguousarray(data, dtype=np.uint8)].tobytes().decode("ascii")
+        digits = _HEX_DIGITS[np.ascontiguousarray(data, dtype=np.uint8)]
+        unique = sorted(set(ids))
+        if all(n == _MAX_DATA for n in lengths) and len({len(texts[u]) for u in unique}) == 1 and heads[0].isascii():
+            # every line the same width (8-byte frames, one id width, fixed-width stamps): the lines as one
+            # block of bytes, column by column, instead of one string per frame (the same bytes: tested)
+            where = {u: k for k, u in enumerate(unique)}
+            id_rows = np.frombuffer("".join(texts[u] for u in unique).encode("ascii"), dtype=np.uint8)
+            head_rows = np.frombuffer("".join(heads).encode("ascii"), dtype=np.uint8).reshape(len(heads), -1)
+            columns = (
+                head_rows[cycle_of],
+                id_rows.reshape(len(unique), -1)[np.fromiter(map(where.__getitem__, ids), np.int64, len(ids))],
+                digits.view(np.uint8).reshape(len(ids), 2 * _MAX_DATA),
+                np.full((len(ids), 1), ord("\n"), dtype=np.uint8),
+            )
+            self._stream.write(np.concatenate(columns, axis=1).tobytes().decode("ascii"))
+            self.lines_written += len(ids)
+            return
+        hexes = digits.tobytes().decode("ascii")
         self._stream.write(
             "".join(
                 [
