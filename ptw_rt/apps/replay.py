@@ -203,13 +203,6 @@ def _open_log_writer(path: Path, channel: str) -> Any:
 _CSV_TEMPLATE = "%.6f," + ",".join(["%.10g"] * len(ESTIMATE_NAMES)) + "\n"
 
 
-def _csv_row(now: float, estimates: np.ndarray) -> str:
-    values = estimates.tolist()
-    if len(values) != len(ESTIMATE_NAMES):  # not an Estimates record: format whatever it holds
-        return f"{now:.6f}," + ",".join(f"{v:.10g}" for v in values) + "\n"
-    return _CSV_TEMPLATE % (now, *values)
-
-
 def replay_log(
     in_path: str | Path,
     out_log: str | Path,

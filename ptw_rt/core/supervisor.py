@@ -126,6 +126,7 @@ PARAMS = Layout(
     band_threshold=MAX_BANDS,  # N m: RMS residual beyond which the torque is implausible, per band
     wheelbase=1,  # m
     cos_caster=1,
+    steer_alpha=1,  # share of each cycle in the steer-kinematics residual's running mean (STEER_WINDOW)
 )
 (
     P_DT,
@@ -145,6 +146,7 @@ PARAMS = Layout(
     P_BAND_THRESHOLD,
     P_WHEELBASE,
     P_COS_CASTER,
+    P_STEER_ALPHA,
 ) = PARAMS.offsets
 
 OUTPUTS = Layout(
@@ -182,6 +184,7 @@ def build_params(settings, design) -> np.ndarray:
         band_threshold=_padded(est.plausibility.torque_residual_nm),
         wheelbase=settings.vehicle.l_f + settings.vehicle.l_r,
         cos_caster=math.cos(settings.vehicle.caster),
+        steer_alpha=1.0 - math.exp(-float(design.sample_time) / STEER_WINDOW),
     )
 
 
@@ -257,8 +260,7 @@ def _steer_kinematics(st: np.ndarray, prm: np.ndarray, cond: np.ndarray, u: floa
         st[ST_STEER_RESIDUAL] = 0.0
     elif abs(cond[cnd.OUT_A_Y]) < STEER_MAX_LATERAL_ACCEL and int(cond[cnd.OUT_REASONS]) & _STEER_INPUT_FAULTS == 0:
         kinematic = prm[P_WHEELBASE] * cond[cnd.OUT_YAW_RATE] * math.cos(cond[cnd.OUT_ROLL]) / (u * prm[P_COS_CASTER])
-        alpha = 1.0 - math.exp(-prm[P_DT] / STEER_WINDOW)
-        st[ST_STEER_RESIDUAL] += alpha * (cond[cnd.OUT_STEER] - kinematic - st[ST_STEER_RESIDUAL])
+        st[ST_STEER_RESIDUAL] += prm[P_STEER_ALPHA] * (cond[cnd.OUT_STEER] - kinematic - st[ST_STEER_RESIDUAL])
         if abs(st[ST_STEER_RESIDUAL]) > STEER_RESIDUAL:
             st[ST_STEER_IMPLAUSIBLE_UNTIL] = st[ST_TIME] + prm[P_PLAUSIBILITY_HOLD]
     return st[ST_STEER_IMPLAUSIBLE_UNTIL] > st[ST_TIME]

@@ -33,6 +33,7 @@ from ptw_rt.edge import drive as dr
 from ptw_rt.edge import tracking as tr
 from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.edge.outputs import OutputEncoder
+from ptw_rt.io.candump import payload_rows
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.settings import Settings, load_settings
@@ -248,8 +249,7 @@ def frame_blocks(
         if not times:
             return
         lengths = np.fromiter(map(len, chunks), dtype=np.int64, count=len(chunks))
-        padded = b"".join(c if len(c) == 8 else bytes(c).ljust(8, b"\0") for c in chunks)
-        data = np.frombuffer(padded, dtype=np.uint8).reshape(-1, 8)
+        data = payload_rows(chunks)
         block = decode_block(
             tracker, np.array(times, dtype=float), np.array(ids, dtype=np.int64), lengths, data, offset
         )
@@ -412,9 +412,9 @@ def drive_log(
       inputs are reset (``CycleRunner.restart_segment``: the estimator keeps its learned tyre stiffness) and
       the next segment's cycles start from that frame's stamp. Output counters and the 10 Hz phase go on.
     * A frame with a non-finite stamp is dropped and counted in ``stats.bad_stamps``.
+
+    A ``max_gap`` that is not > 0 is a ValueError (``drive_blocks``), before any frame is read.
     """
-    if not max_gap > 0.0:
-        raise ValueError(f"max_gap must be > 0, got {max_gap!r}")
     encoder = runner.encoder
 
     def on_chunk(chunk: Chunk) -> None:

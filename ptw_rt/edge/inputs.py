@@ -40,7 +40,6 @@ from ptw_rt.edge import tracking as tr
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError, MessageLayout
 
 _BYTES_TYPES = (bytes, bytearray)
-MAX_IMU_AGE = tr.MAX_IMU_AGE
 
 # message -> ((signal, Sample index), ...), in input order (the compiled tracker's input k)
 SIGNAL_SLOTS: dict[str, tuple[tuple[str, int], ...]] = {

@@ -103,8 +103,7 @@ COUNTS = (
 
 def initial_state() -> np.ndarray:
     state = np.zeros(STATE.size)
-    track_restart(state)
-    state[TR_SUSPECT] = 0.0
+    track_restart(state)  # the suspect bits, which a restart keeps, start at 0
     return state
 
 

@@ -58,6 +58,7 @@ __all__ = [
     "format_line",
     "parse_line",
     "FrameArrays",
+    "payload_rows",
     "Jump",
     "read_log",
     "text_blocks",
@@ -391,7 +392,7 @@ class FrameArrays(NamedTuple):
             np.fromiter((f.frame_id for f in frames), dtype=np.int64, count=n),
             np.fromiter((f.is_extended for f in frames), dtype=bool, count=n),
             np.fromiter((len(f.data) for f in frames), dtype=np.int64, count=n),
-            _byte_rows([bytes(f.data) for f in frames]),
+            payload_rows([bytes(f.data) for f in frames]),
             frames[0].channel if frames else None,
             jumps,
         )
@@ -413,7 +414,7 @@ class FrameArrays(NamedTuple):
         return FrameArrays(*(a[start:stop] for a in self[:5]), self.channel, jumps)
 
 
-def _byte_rows(payloads: Sequence[bytes]) -> np.ndarray:
+def payload_rows(payloads: Sequence[bytes]) -> np.ndarray:
     """``uint8[n, 8]``: each payload (at most 8 bytes) zero-padded."""
     joined = b"".join(p if len(p) == 8 else p.ljust(8, b"\0") for p in payloads)
     return np.frombuffer(joined, dtype=np.uint8).reshape(len(payloads), 8)
