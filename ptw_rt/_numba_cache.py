@@ -2,7 +2,7 @@
 
 The base is `NUMBA_CACHE_DIR` if set (the systemd unit sets it under `CacheDirectory=`), else
 `$XDG_CACHE_HOME/ptw-rt/numba` (`~/.cache/ptw-rt/numba`). Below it, `src-<hash>` holds the cache of one
-version of `ptw_rt/core` and `ptw_rt/sim` (the packages with jitted code); directories of other versions
+version of `ptw_rt/core`, `edge`, `io` and `sim` (the packages with jitted code); directories of other versions
 that nobody touched for an hour are removed, so upgrades do not accumulate caches.
 Nothing here may raise: a cache problem costs one slow start, never a failed one.
 """
@@ -15,7 +15,7 @@ import shutil
 import time
 from pathlib import Path
 
-JITTED_PACKAGES = ("core", "edge", "sim")
+JITTED_PACKAGES = ("core", "edge", "io", "sim")
 _PREFIX = "src-"
 _STALE_AFTER_S = 3600.0
 _ENV = "NUMBA_CACHE_DIR"

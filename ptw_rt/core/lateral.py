@@ -32,7 +32,7 @@ from ptw_rt.core import speed as spd
 from ptw_rt.core import tyre_bank as tb
 from ptw_rt.core.stage import Layout, Stage, all_finite, v1, v2, v3
 
-MAX_HYPOTHESES = 32  # the bank's state is laid out for this many (the design file has `len(tb_scale)`)
+MAX_HYPOTHESES = tb.MAX_COUNT  # the bank's state is laid out for this many (the design file has `len(tb_scale)`)
 
 STATE = Layout(
     "ST_",

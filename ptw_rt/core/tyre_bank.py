@@ -116,8 +116,17 @@ OUT_LEARNING = OUT_SCALE + 6  # 1 if this cycle's evidence moved the estimate
 OUT_OPERATING_SCALE = OUT_SCALE + 7  # the operating posterior's scale (what the mixture runs on)
 OUT_SIZE = OUT_SCALE + 8
 
-# scratch needed by `bank_step`: innovation (N_Y), one filter's output (N_Z), correction forces (N_D)
-SCRATCH_SIZE = kf.N_Y + kf.N_Z + kf.N_D
+MAX_COUNT = 32  # hypotheses the scratch is laid out for (the design file has `len(tb_scale)`)
+# scratch needed by `bank_step`: innovation (N_Y), one filter's output (N_Z), correction forces (N_D), then per
+# hypothesis its log k and its weights in the two posteriors (each computed once per cycle: exp and log are
+# most of the bank's cost beside the filters)
+SC_E = 0
+SC_ZH = SC_E + kf.N_Y
+SC_D = SC_ZH + kf.N_Z
+SC_LOG_SCALE = SC_D + kf.N_D
+SC_WEIGHT = SC_LOG_SCALE + MAX_COUNT
+SC_WEIGHT_OP = SC_WEIGHT + MAX_COUNT
+SCRATCH_SIZE = SC_WEIGHT_OP + MAX_COUNT
 
 
 def bank_params(count: int, dt: float, tuning) -> np.ndarray:
@@ -208,9 +217,9 @@ def _evidence(logl: np.ndarray, prior: np.ndarray, h: int, forget: float, take: 
 
 
 @njit(cache=True)
-def _normalise(logl: np.ndarray, lo: int, hi: int, floor: float) -> tuple[float, float]:
-    """(best log-likelihood, sum of exp(logl - best)) over the window; every one kept within `floor` of the best
-    (a hypothesis can always come back: a road can change)."""
+def _normalise(logl: np.ndarray, lo: int, hi: int, floor: float, weight: np.ndarray) -> None:
+    """The posterior weights over the window, exp(logl - best) / their sum, into `weight`; every log-likelihood
+    kept within `floor` of the best (a hypothesis can always come back: a road can change)."""
     best = logl[lo]
     for h in range(lo + 1, hi + 1):
         if logl[h] > best:
@@ -219,8 +228,10 @@ def _normalise(logl: np.ndarray, lo: int, hi: int, floor: float) -> tuple[float,
     for h in range(lo, hi + 1):
         if not logl[h] >= best - floor:  # also a NaN
             logl[h] = best - floor
-        total += math.exp(logl[h] - best)
-    return best, total
+        weight[h] = math.exp(logl[h] - best)
+        total += weight[h]
+    for h in range(lo, hi + 1):
+        weight[h] = weight[h] / total
 
 
 @njit(cache=True)
@@ -265,9 +276,12 @@ def bank_step(
     if st[_scalars0(H) + SC_INIT] == 0.0:
         set_prior(st, prm, scale, 1.0, prm[B_PRIOR_SD])
     i, w = grid_position(grid, u)
-    e = scratch[0 : kf.N_Y]
-    zh = scratch[kf.N_Y : kf.N_Y + kf.N_Z]
-    d = scratch[kf.N_Y + kf.N_Z : kf.N_Y + kf.N_Z + kf.N_D]
+    e = scratch[SC_E : SC_E + kf.N_Y]
+    zh = scratch[SC_ZH : SC_ZH + kf.N_Z]
+    d = scratch[SC_D : SC_D + kf.N_D]
+    log_scale = scratch[SC_LOG_SCALE : SC_LOG_SCALE + H]
+    weight = scratch[SC_WEIGHT : SC_WEIGHT + H]
+    weight_op = scratch[SC_WEIGHT_OP : SC_WEIGHT_OP + H]
     logl = st[_logl0(H) : _logl0(H) + H]
     logl_op = st[_logl_operating0(H) : _logl_operating0(H) + H]
     nisw = st[_nis0(H) : _nis0(H) + H]
@@ -325,17 +339,18 @@ def bank_step(
 
     # 2. the posteriors over the window: the small-slip one (published stiffness, its spread and consistency)
     # and the operating one (the weights of the published states)
-    best, total = _normalise(logl, lo, hi, prm[B_FLOOR])
-    best_op, total_op = _normalise(logl_op, lo, hi, prm[B_FLOOR])
+    _normalise(logl, lo, hi, prm[B_FLOOR], weight)
+    _normalise(logl_op, lo, hi, prm[B_FLOOR], weight_op)
     mean_log = 0.0
     mean_log_op = 0.0
     for h in range(lo, hi + 1):
-        mean_log += math.exp(logl[h] - best) / total * math.log(scale[h])
-        mean_log_op += math.exp(logl_op[h] - best_op) / total_op * math.log(scale[h])
+        log_scale[h] = math.log(scale[h])
+        mean_log += weight[h] * log_scale[h]
+        mean_log_op += weight_op[h] * log_scale[h]
     var_log = 0.0
     for h in range(lo, hi + 1):
-        dl = math.log(scale[h]) - mean_log
-        var_log += math.exp(logl[h] - best) / total * dl * dl
+        dl = log_scale[h] - mean_log
+        var_log += weight[h] * dl * dl
     map_h = _most_likely(logl, lo, hi)
 
     # 3. every running filter's step; the published states are the operating posterior's mixture
@@ -357,12 +372,11 @@ def bank_step(
             nl,
             d,
         )
-        wh = math.exp(logl_op[h] - best_op) / total_op
         for k in range(kf.N_Z):
-            out[OUT_Z + k] += wh * zh[k]
+            out[OUT_Z + k] += weight_op[h] * zh[k]
     out[OUT_SCALE] = math.exp(mean_log)
     out[OUT_LOG_SD] = math.sqrt(var_log)
-    out[OUT_MAP_WEIGHT] = math.exp(logl[map_h] - best) / total
+    out[OUT_MAP_WEIGHT] = weight[map_h]
     out[OUT_MAP_NIS] = nisw[map_h]
     out[OUT_MAP_SCALE] = scale[map_h]
     out[OUT_MAP_NIS_FAST] = nisf[map_h]

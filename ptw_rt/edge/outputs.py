@@ -218,6 +218,9 @@ class OutputEncoder:
         self._status_index = OUTPUT_ORDER.index("EST_Status")
         # per message: (frame id, length, plain, layout) to turn the encoder's rows into frames
         self._frame_of = tuple((layout.frame_id, layout.length, layout.plain, layout) for layout in self.layouts)
+        self._all_plain = all(layout.plain for layout in self.layouts)
+        self._ids = np.array([layout.frame_id for layout in self.layouts], dtype=np.int64)  # bulk's, per message
+        self._lengths = np.array([layout.length for layout in self.layouts], dtype=np.int64)
         self._messages = np.zeros(en.N_OUTPUTS, dtype=np.int64)
         self._words = np.zeros(en.N_OUTPUTS, dtype=np.uint64)
         self._values = np.zeros((en.N_OUTPUTS, en.MAX_SIGNALS))
@@ -229,15 +232,16 @@ class OutputEncoder:
             return frame_id, (word & _MASK64).to_bytes(8, "little")[:length]
         return frame_id, layout.pack(values[: len(layout.signals)].tolist())
 
-    def bulk(self, messages: np.ndarray, words: np.ndarray) -> tuple[list[int], np.ndarray, list[int]] | None:
-        """Many frames of the compiled encoder at once: ``(ids, uint8[n, 8] data, lengths)``, or None when some
-        message is not plain (its bytes come from ``frame``, one by one)."""
-        if not all(plain for _, _, plain, _ in self._frame_of):
+    def bulk(self, messages: np.ndarray, words: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Many frames of the compiled encoder at once: ``(ids, uint8[n, 8] data, lengths)`` (arrays), or None when
+        some message is not plain (its bytes come from ``frame``, one by one)."""
+        if not self._all_plain:
             return None
-        index = messages.tolist()
-        ids = [self._frame_of[m][0] for m in index]
-        lengths = [self._frame_of[m][1] for m in index]
-        return ids, words.astype("<u8", copy=False).view(np.uint8).reshape(-1, 8), lengths
+        return (
+            self._ids[messages],
+            words.astype("<u8", copy=False).view(np.uint8).reshape(-1, 8),
+            self._lengths[messages],
+        )
 
     def status_frame(
         self,

@@ -41,6 +41,7 @@ from typing import IO, Any, NamedTuple
 import numpy as np
 
 from ptw_rt.errors import UserFacingError
+from ptw_rt.io.candump_scan import POW10, scan_plain
 from ptw_rt.untrusted import open_binary
 
 __all__ = [
@@ -262,7 +263,12 @@ class CandumpWriter:
         self.lines_written += len(parts)
 
     def write_frames(
-        self, times: np.ndarray, cycle_of: np.ndarray, ids: Sequence[int], data: np.ndarray, lengths: Sequence[int]
+        self,
+        times: np.ndarray,
+        cycle_of: np.ndarray,
+        ids: Sequence[int] | np.ndarray,
+        data: np.ndarray,
+        lengths: Sequence[int] | np.ndarray,
     ) -> None:
         """Many frames in one write, the same lines as ``write`` per frame (byte for byte): frame i has id
         ``ids[i]``, the first ``lengths[i]`` bytes of row i of ``data`` (``uint8[n, 8]``) and the stamp
@@ -272,41 +278,45 @@ class CandumpWriter:
         if not (np.all(times >= 0.0) and np.all(times < 1e10)):  # not a stamp format_line takes: its error
             bad = times[~((times >= 0.0) & (times < 1e10))][0]
             format_line(float(bad), self.channel, 0, b"")
-        if any(n > _MAX_DATA for n in lengths):
+        ids = np.asarray(ids, dtype=np.int64)
+        lengths = np.asarray(lengths, dtype=np.int64)
+        if lengths.size and int(lengths.max()) > _MAX_DATA:
             raise ValueError(f"classic CAN payload is at most {_MAX_DATA} bytes")
         heads = [f"({t:017.6f}) {self.channel} " for t in times.tolist()]
         texts = self._id_text
-        for frame_id in set(ids):
+        unique, id_index = np.unique(ids, return_inverse=True)
+        for frame_id in unique.tolist():
             if frame_id not in texts:
                 line = format_line(0.0, self.channel, frame_id, b"")  # range check, as write does
                 texts[frame_id] = line[line.index(" ", line.index(" ") + 1) + 1 :]  # "ID#"
+        id_texts = [texts[u] for u in unique.tolist()]
         digits = _HEX_DIGITS[np.ascontiguousarray(data, dtype=np.uint8)]
-        unique = sorted(set(ids))
-        if all(n == _MAX_DATA for n in lengths) and len({len(texts[u]) for u in unique}) == 1 and heads[0].isascii():
+        if bool(np.all(lengths == _MAX_DATA)) and len(set(map(len, id_texts))) == 1 and heads[0].isascii():
             # every line the same width (8-byte frames, one id width, fixed-width stamps): the lines as one
             # block of bytes, column by column, instead of one string per frame (the same bytes: tested)
-            where = {u: k for k, u in enumerate(unique)}
-            id_rows = np.frombuffer("".join(texts[u] for u in unique).encode("ascii"), dtype=np.uint8)
+            id_rows = np.frombuffer("".join(id_texts).encode("ascii"), dtype=np.uint8)
             head_rows = np.frombuffer("".join(heads).encode("ascii"), dtype=np.uint8).reshape(len(heads), -1)
             columns = (
                 head_rows[cycle_of],
-                id_rows.reshape(len(unique), -1)[np.fromiter(map(where.__getitem__, ids), np.int64, len(ids))],
-                digits.view(np.uint8).reshape(len(ids), 2 * _MAX_DATA),
-                np.full((len(ids), 1), ord("\n"), dtype=np.uint8),
+                id_rows.reshape(len(unique), -1)[id_index],
+                digits.view(np.uint8).reshape(ids.size, 2 * _MAX_DATA),
+                np.full((ids.size, 1), ord("\n"), dtype=np.uint8),
             )
             self._stream.write(np.concatenate(columns, axis=1).tobytes().decode("ascii"))
-            self.lines_written += len(ids)
+            self.lines_written += ids.size
             return
         hexes = digits.tobytes().decode("ascii")
         self._stream.write(
             "".join(
                 [
-                    f"{heads[c]}{texts[frame_id]}{hexes[16 * i : 16 * i + 2 * n]}\n"
-                    for i, (c, frame_id, n) in enumerate(zip(cycle_of.tolist(), ids, lengths, strict=True))
+                    f"{heads[c]}{id_texts[k]}{hexes[16 * i : 16 * i + 2 * n]}\n"
+                    for i, (c, k, n) in enumerate(
+                        zip(cycle_of.tolist(), id_index.tolist(), lengths.tolist(), strict=True)
+                    )
                 ]
             )
         )
-        self.lines_written += len(ids)
+        self.lines_written += ids.size
 
     def write_frame(self, frame: LogFrame) -> None:
         """Write a frame read from another log (keeps its time stamp and channel)."""
@@ -422,35 +432,33 @@ def payload_rows(payloads: Sequence[bytes]) -> np.ndarray:
 
 _FAST_WINDOW = 4096  # frames the time rule's column fast path checks at once
 _SLOW_RUN = 64  # frames then taken one by one when fewer than this passed it
-# a block of lines all in the plain form of _PLAIN_LINE_RE, matched at once (MULTILINE: one match per line)
-_PLAIN_BLOCK_RE = re.compile("^" + _PLAIN_LINE_RE.pattern + "$", re.MULTILINE)
 
 
 def _plain_columns(lines: list[str]) -> tuple[FrameArrays, tuple[str, ...]] | None:
     """The frames of a block of lines as columns when every line is the plain line ``parse_line`` takes on its
     fast path (with the same checks: stamp, id range, no '#' in the channel), with each line's channel; None
-    otherwise (the block then goes line by line)."""
-    if not lines or max(map(len, lines)) > MAX_LINE_CHARS:
+    otherwise (the block then goes line by line). Parsed by the compiled scan of ``candump_scan``."""
+    n = len(lines)
+    if not n:
         return None
-    rows = _PLAIN_BLOCK_RE.findall("\n".join(lines))
-    n = len(rows)
-    if n != len(lines):
+    joined = "\n".join(lines)
+    if not joined.isascii():
         return None
-    stamps, channels, id_texts, payloads = zip(*rows, strict=True)
-    times = np.fromiter(map(float, stamps), dtype=np.float64, count=n)
-    if not times.max() <= MAX_TIMESTAMP or any("#" in c for c in set(channels)):
+    text = np.frombuffer(joined.encode("ascii"), dtype=np.uint8)
+    times = np.empty(n)
+    ids = np.empty(n, dtype=np.int64)
+    extended = np.empty(n, dtype=bool)
+    lengths = np.empty(n, dtype=np.int64)
+    data = np.zeros((n, _MAX_DATA), dtype=np.uint8)
+    span = np.zeros(3, dtype=np.int64)
+    if scan_plain(text, MAX_LINE_CHARS, MAX_TIMESTAMP, POW10, times, ids, extended, lengths, data, span) != n:
         return None
-    known: dict[str, tuple[int, bool]] = {}
-    for text in set(id_texts):
-        value, extended = int(text, 16), len(text) == 8
-        if value > (_EXT_MAX if extended else _STD_MAX):
-            return None
-        known[text] = (value, extended)
-    ids = np.fromiter((known[t][0] for t in id_texts), dtype=np.int64, count=n)
-    extended = np.fromiter((known[t][1] for t in id_texts), dtype=bool, count=n)
-    lengths = np.fromiter(map(len, payloads), dtype=np.int64, count=n) // 2
-    data = np.frombuffer(bytes.fromhex("".join([p.ljust(16, "0") for p in payloads])), dtype=np.uint8)
-    return FrameArrays(times, ids, extended, lengths, data.reshape(n, 8), channels[0], []), channels
+    channel = joined[span[0] : span[1]]
+    if span[2]:
+        channels: tuple[str, ...] = (channel,) * n
+    else:  # several channels: each line's own (rare; the regular expression is the definition)
+        channels = tuple(_PLAIN_LINE_RE.fullmatch(line).group(2) for line in lines)  # type: ignore[union-attr]
+    return FrameArrays(times, ids, extended, lengths, data, channel, []), channels
 
 
 class TimeRule(Iterator[LogFrame]):
