@@ -135,3 +135,27 @@ def test_operating_tyres_follow_where_the_small_slip_stiffness_may_not_learn(ban
     assert out[tb.OUT_SCALE] == pytest.approx(1.0, rel=0.02)
     assert out[tb.OUT_LOG_SD] > 0.15  # and claims nothing
     assert out[tb.OUT_LEARNING] == 0.0
+
+
+def test_sub_grid_peak_interpolates_a_narrow_posterior():
+    """A log-posterior quadratic in log k peaking between hypotheses: the parabola through the most likely one
+    and its neighbours finds the peak; a broad one, or one at the window's edge, keeps the posterior mean."""
+    log_scale = np.log(1.15 ** np.arange(-4, 5))
+    peak, sd = math.log(1.15**0.3), 0.02
+    logl = -0.5 * ((log_scale - peak) / sd) ** 2
+    m = int(np.argmax(logl))
+    assert tb._sub_grid_peak(logl, log_scale, 0, 8, m, 99.0) == pytest.approx(peak, abs=1e-12)
+    broad = -0.5 * ((log_scale - peak) / 0.5) ** 2
+    assert tb._sub_grid_peak(broad, log_scale, 0, 8, int(np.argmax(broad)), 99.0) == 99.0
+    assert tb._sub_grid_peak(logl, log_scale, m, 8, m, 99.0) == 99.0  # no lower neighbour in the window
+    flat = np.zeros(9)
+    assert tb._sub_grid_peak(flat, log_scale, 0, 8, 4, 99.0) == 99.0  # not concave
+
+
+def test_tyres_between_hypotheses_are_not_snapped_to_one(bank):
+    """x1.14 lies between the x1.0 and x1.3 hypotheses of the test bank: the estimate lands between them, not on
+    the nearest (a collapsed posterior's mean would read 1.0 or 1.3, 12-14 % off)."""
+    trace, out = _run(bank, _ride(bank[0], 1.14, 40.0, excite=True, seed=5))
+    assert out[tb.OUT_LOG_SD] < 0.05
+    assert out[tb.OUT_SCALE] == pytest.approx(1.14, rel=0.06)
+    assert not math.isclose(out[tb.OUT_SCALE], out[tb.OUT_MAP_SCALE], rel_tol=0.02)
