@@ -98,6 +98,9 @@ TYRE_BANK_SCHEMA = Section(
         # filters run each cycle: the most likely tyre and this many on each side (a window of 2 n + 1 that
         # follows the estimate; the bank's cost is per running filter)
         "running_half_width": (Number("", integer=True, ge=1, le=64), 3),
+        # no evidence about the tyres while even the best-fitting filter's short-window NIS (expected 5) is above
+        # this: data no tyre explains (a faulty sensor within its range) would drag the estimate
+        "max_evidence_nis_fast": (Number("", gt=0), 25.0),
     },
 )
 
@@ -330,6 +333,7 @@ class TyreBankTuning:
     min_excitation_lateral_accel: float
     min_excitation_yaw_rate: float
     running_half_width: int
+    max_evidence_nis_fast: float
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,8 @@ short-window inconsistency (``tyre_valid_max_nis_fast``, a sudden change of road
 the most likely hypothesis unchanged for ``tyre_settle`` seconds, and the observers settled.
 
 Plausibility (issue #16): the published torque against the UIHOSMO on the sensors (``_plausibility``), and the
-steer angle against the kinematics (``_steer_kinematics``): riding nearly straight (|a_y| small, where the
-tyres' slip adds little) the steer angle is L r cos(roll) / (u cos(caster)); a running mean of the difference
+steer angle against the kinematics (``_steer_kinematics``): riding nearly straight (a_y and u r small, where
+the tyres' slip adds little) the steer angle is L r cos(roll) / (u cos(caster)); a running mean of the difference
 beyond ``STEER_RESIDUAL`` is an encoder that slipped or was mounted off (REASON_IMPLAUSIBLE, steer, steer
 rate and torque not valid).
 """
@@ -96,11 +96,13 @@ STATE = Layout(
 ) = STATE.offsets
 MAX_BANDS = 8  # speed bands of the plausibility threshold
 RESIDUAL_CLIP = 2.0  # thresholds: bound of one cycle's torque difference in the plausibility window
-# The steer-kinematics check (`_steer_kinematics`), from the evaluation matrix (2026-11-25): riding with
-# |a_y| < STEER_MAX_LATERAL_ACCEL its 0.3 s running mean stayed within 0.24 deg on all 40 healthy cells (tyres
-# x0.7/x1.3, mu 0.85, +50 kg, sensor faults); a 3-count (1 deg) encoder offset crosses 0.5 deg in 0.2 s at
-# 40-120 km/h, 0.9 s in a slalom, 2.1 s in town (only its straighter moments count). In a long corner (|a_y|
-# above it throughout) this check is blind: the torque plausibility sees the offset there.
+# The steer-kinematics check (`_steer_kinematics`), from the evaluation matrix (2026-11-25): riding with both
+# the body-frame a_y and the turn's centripetal u r below STEER_MAX_LATERAL_ACCEL (a steady lean keeps a_y near
+# zero in any corner: gated on a_y alone, `radius_accel` with +80 kg false-alarmed on the tyres' slip) its 0.3 s
+# running mean stayed within 0.23 deg on all 40 healthy cells and 48 further rides (other seeds, tyres x0.6 and
+# x1.4, mu 0.7, +-80 kg); a 3-count (1 deg) encoder offset crosses 0.5 deg in 0.2 s at 40-120 km/h, 1.0 s in a
+# slalom, 2.2 s in town (only its straighter moments count). In a long corner this check is blind: the torque
+# plausibility sees the offset there.
 STEER_WINDOW = 0.3  # s
 STEER_RESIDUAL = math.radians(0.5)  # rad
 STEER_MAX_LATERAL_ACCEL = 1.0  # m/s^2
@@ -258,7 +260,11 @@ def _steer_kinematics(st: np.ndarray, prm: np.ndarray, cond: np.ndarray, u: floa
     observers stop. The alarm holds ``plausibility_hold`` after the mean is back."""
     if cond[cnd.OUT_RUN] == 0.0:
         st[ST_STEER_RESIDUAL] = 0.0
-    elif abs(cond[cnd.OUT_A_Y]) < STEER_MAX_LATERAL_ACCEL and int(cond[cnd.OUT_REASONS]) & _STEER_INPUT_FAULTS == 0:
+    elif (
+        abs(u * cond[cnd.OUT_YAW_RATE]) < STEER_MAX_LATERAL_ACCEL  # the turn's centripetal acceleration: a lean
+        and abs(cond[cnd.OUT_A_Y]) < STEER_MAX_LATERAL_ACCEL  # hides it from the body-frame a_y
+        and int(cond[cnd.OUT_REASONS]) & _STEER_INPUT_FAULTS == 0
+    ):
         kinematic = prm[P_WHEELBASE] * cond[cnd.OUT_YAW_RATE] * math.cos(cond[cnd.OUT_ROLL]) / (u * prm[P_COS_CASTER])
         st[ST_STEER_RESIDUAL] += prm[P_STEER_ALPHA] * (cond[cnd.OUT_STEER] - kinematic - st[ST_STEER_RESIDUAL])
         if abs(st[ST_STEER_RESIDUAL]) > STEER_RESIDUAL:

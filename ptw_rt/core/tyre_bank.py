@@ -57,7 +57,8 @@ B_EXCITATION_ALPHA = 7  # share of each cycle in the mean squares of a_y and yaw
 B_MIN_AY = 8  # m/s^2: RMS lateral acceleration above which the ride tells tyres apart ...
 B_MIN_YAW_RATE = 9  # rad/s: ... or RMS yaw rate
 B_HALF_WIDTH = 10  # hypotheses run each cycle: the most likely one and this many on each side (module doc)
-PARAM_SIZE = 11
+B_MAX_EVIDENCE_NIS = 11  # no evidence while even the best-fitting filter's short-window NIS is above this
+PARAM_SIZE = 12
 
 # ---- state layout: H blocks of (z, init), then per-hypothesis vectors (log-likelihood, NIS, prior, fast NIS,
 # operating log-likelihood, unclipped log-likelihood), then scalars ----
@@ -134,7 +135,9 @@ SC_D = SC_ZH + kf.N_Z
 SC_LOG_SCALE = SC_D + kf.N_D
 SC_WEIGHT = SC_LOG_SCALE + MAX_COUNT
 SC_WEIGHT_OP = SC_WEIGHT + MAX_COUNT
-SCRATCH_SIZE = SC_WEIGHT_OP + MAX_COUNT
+SC_NIS = SC_WEIGHT_OP + MAX_COUNT  # this cycle's NIS and log det S of each hypothesis
+SC_LD = SC_NIS + MAX_COUNT
+SCRATCH_SIZE = SC_LD + MAX_COUNT
 
 
 def bank_params(count: int, dt: float, tuning) -> np.ndarray:
@@ -151,6 +154,7 @@ def bank_params(count: int, dt: float, tuning) -> np.ndarray:
     prm[B_MIN_AY] = tuning.min_excitation_lateral_accel
     prm[B_MIN_YAW_RATE] = tuning.min_excitation_yaw_rate
     prm[B_HALF_WIDTH] = tuning.running_half_width
+    prm[B_MAX_EVIDENCE_NIS] = tuning.max_evidence_nis_fast
     return prm
 
 
@@ -314,6 +318,8 @@ def bank_step(
     log_scale = scratch[SC_LOG_SCALE : SC_LOG_SCALE + H]
     weight = scratch[SC_WEIGHT : SC_WEIGHT + H]
     weight_op = scratch[SC_WEIGHT_OP : SC_WEIGHT_OP + H]
+    nis_now = scratch[SC_NIS : SC_NIS + H]
+    ld_now = scratch[SC_LD : SC_LD + H]
     logl = st[_logl0(H) : _logl0(H) + H]
     logl_op = st[_logl_operating0(H) : _logl_operating0(H) + H]
     logl_raw = st[_logl_raw0(H) : _logl_raw0(H) + H]
@@ -345,16 +351,12 @@ def bank_step(
         st[sc + SC_MS_AY] += a * (y[3] * y[3] - st[sc + SC_MS_AY])
         st[sc + SC_MS_R] += a * (y[1] * y[1] - st[sc + SC_MS_R])
     excited = st[sc + SC_MS_AY] > prm[B_MIN_AY] ** 2 or st[sc + SC_MS_R] > prm[B_MIN_YAW_RATE] ** 2
-    track = track and observe and excited
-    learn = learn and track
-    forget = prm[B_LEARN_FORGET] if learn else prm[B_IDLE_FORGET]
-    forget_op = prm[B_LEARN_FORGET] if track else prm[B_IDLE_FORGET]
+    best_fit = math.inf  # the best-fitting filter's short-window NIS (with this cycle's)
     for h in range(lo, hi + 1):
         z = st[h * BLOCK : h * BLOCK + kf.N_Z]
         nis = 0.0
         ld = 0.0
-        measured = observe and st[h * BLOCK + kf.INIT] != 0.0
-        if measured:
+        if observe and st[h * BLOCK + kf.INIT] != 0.0:
             j = h * G + i
             for r in range(kf.N_Y):
                 acc = y[r]
@@ -367,6 +369,19 @@ def bank_step(
             nisw[h] += alpha * (nis - nisw[h])
             nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
             ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
+            best_fit = min(best_fit, nisf[h])
+        nis_now[h] = nis
+        ld_now[h] = ld
+    # data that no tyre explains (an accelerometer reading what no force causes, a sensor fault the input
+    # checks cannot see) are no evidence about the tyres: every filter's innovation is large, and their
+    # differences would drag the estimate wherever the garbage points (tests/test_estimator.py)
+    track = track and observe and excited and best_fit <= prm[B_MAX_EVIDENCE_NIS]
+    learn = learn and track
+    forget = prm[B_LEARN_FORGET] if learn else prm[B_IDLE_FORGET]
+    forget_op = prm[B_LEARN_FORGET] if track else prm[B_IDLE_FORGET]
+    for h in range(lo, hi + 1):
+        measured = observe and st[h * BLOCK + kf.INIT] != 0.0
+        nis, ld = nis_now[h], ld_now[h]
         _evidence(logl, prior, h, forget, measured and learn, nis, ld)
         _evidence(logl_op, prior, h, forget_op, measured and track, nis, ld)
         _evidence(logl_raw, prior, h, forget, measured and learn, nis, ld)
