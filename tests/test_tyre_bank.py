@@ -159,3 +159,30 @@ def test_tyres_between_hypotheses_are_not_snapped_to_one(bank):
     assert out[tb.OUT_LOG_SD] < 0.05
     assert out[tb.OUT_SCALE] == pytest.approx(1.14, rel=0.06)
     assert not math.isclose(out[tb.OUT_SCALE], out[tb.OUT_MAP_SCALE], rel_tol=0.02)
+
+
+def test_a_nan_measurement_poisons_nothing_for_good(bank):
+    """A non-finite cycle (a diverged filter; the lateral stage restarts the filters, as here) is no
+    measurement: the windowed NIS means, the excitation and the unclipped log-posterior behind the sub-grid
+    peak keep no NaN, and the estimate is back between the hypotheses, consistent, afterwards."""
+    s, tuning, grid, t = bank
+    Y = _ride(s, 1.14, 40.0, excite=True, seed=5)
+    Y[1500] = np.nan
+    H = len(t["tb_scale"])
+    prm = tb.bank_params(H, DT, tuning)
+    st = tb.new_state(H)
+    tb.set_prior(st, prm, t["tb_scale"], 1.0, tuning.prior_sd)
+    out = np.zeros(tb.OUT_SIZE)
+    scratch = np.zeros(tb.SCRATCH_SIZE)
+    C = dk.output_matrix(s.vehicle)
+    for y in Y:
+        tb.bank_step(
+            st, out, scratch, prm, y, U, y[4], True, True, True, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
+            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"],
+        )  # fmt: skip
+        if not np.isfinite(out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]).all():
+            tb.restart_filters(st, prm)  # what the lateral stage does
+    assert np.isfinite(st).all()
+    assert np.isfinite(out).all()
+    assert out[tb.OUT_SCALE] == pytest.approx(1.14, rel=0.06)
+    assert out[tb.OUT_MAP_NIS] < 2.0 * ck.N_Y

@@ -346,7 +346,7 @@ def bank_step(
     # 1. evidence: the innovation of each filter's prediction (a filter that just (re)started has none).
     # Only an excited ride tells tyres apart: on a straight road every filter sees the same noise, and
     # the likelihood would only rank how well each one's noise model fits it (tests/test_tyre_bank.py).
-    if observe:
+    if observe and math.isfinite(y[1]) and math.isfinite(y[3]):
         a = prm[B_EXCITATION_ALPHA]
         st[sc + SC_MS_AY] += a * (y[3] * y[3] - st[sc + SC_MS_AY])
         st[sc + SC_MS_R] += a * (y[1] * y[1] - st[sc + SC_MS_R])
@@ -366,10 +366,15 @@ def bank_step(
             for r in range(kf.N_Y):
                 for c in range(kf.N_Y):
                     nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
-            nisw[h] += alpha * (nis - nisw[h])
-            nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
-            ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
-            best_fit = min(best_fit, nisf[h])
+            if math.isfinite(nis):  # a non-finite one (a diverged filter) is no measurement: the windowed
+                nisw[h] += alpha * (nis - nisw[h])  # means would keep it for good
+                nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
+                ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
+                best_fit = min(best_fit, nisf[h])
+            else:
+                nis = math.nan
+        else:
+            nis = math.nan
         nis_now[h] = nis
         ld_now[h] = ld
     # data that no tyre explains (an accelerometer reading what no force causes, a sensor fault the input
@@ -380,8 +385,8 @@ def bank_step(
     forget = prm[B_LEARN_FORGET] if learn else prm[B_IDLE_FORGET]
     forget_op = prm[B_LEARN_FORGET] if track else prm[B_IDLE_FORGET]
     for h in range(lo, hi + 1):
-        measured = observe and st[h * BLOCK + kf.INIT] != 0.0
         nis, ld = nis_now[h], ld_now[h]
+        measured = not math.isnan(nis)  # observed, the filter running, its innovation finite
         _evidence(logl, prior, h, forget, measured and learn, nis, ld)
         _evidence(logl_op, prior, h, forget_op, measured and track, nis, ld)
         _evidence(logl_raw, prior, h, forget, measured and learn, nis, ld)
@@ -390,6 +395,9 @@ def bank_step(
     # and the operating one (the weights of the published states)
     _normalise(logl, lo, hi, prm[B_FLOOR], weight)
     _normalise(logl_op, lo, hi, prm[B_FLOOR], weight_op)
+    for h in range(lo, hi + 1):
+        if not math.isfinite(logl_raw[h]):  # never clipped, so a NaN innovation would stay in it for good
+            logl_raw[h] = logl[h]
     mean_log = 0.0
     mean_log_op = 0.0
     for h in range(lo, hi + 1):
