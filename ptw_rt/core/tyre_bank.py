@@ -353,30 +353,27 @@ def bank_step(
     excited = st[sc + SC_MS_AY] > prm[B_MIN_AY] ** 2 or st[sc + SC_MS_R] > prm[B_MIN_YAW_RATE] ** 2
     best_fit = math.inf  # the best-fitting filter's short-window NIS (with this cycle's)
     for h in range(lo, hi + 1):
+        nis_now[h] = math.nan  # no measurement: not observed, the filter (re)starting, or its innovation not finite
+        ld_now[h] = 0.0
+        if not (observe and st[h * BLOCK + kf.INIT] != 0.0):
+            continue
         z = st[h * BLOCK : h * BLOCK + kf.N_Z]
+        j = h * G + i
+        for r in range(kf.N_Y):
+            acc = y[r]
+            for c in range(kf.N_Z):
+                acc -= C[r, c] * z[c]
+            e[r] = acc
         nis = 0.0
-        ld = 0.0
-        if observe and st[h * BLOCK + kf.INIT] != 0.0:
-            j = h * G + i
-            for r in range(kf.N_Y):
-                acc = y[r]
-                for c in range(kf.N_Z):
-                    acc -= C[r, c] * z[c]
-                e[r] = acc
-            for r in range(kf.N_Y):
-                for c in range(kf.N_Y):
-                    nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
-            if math.isfinite(nis):  # a non-finite one (a diverged filter) is no measurement: the windowed
-                nisw[h] += alpha * (nis - nisw[h])  # means would keep it for good
-                nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
-                ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
-                best_fit = min(best_fit, nisf[h])
-            else:
-                nis = math.nan
-        else:
-            nis = math.nan
-        nis_now[h] = nis
-        ld_now[h] = ld
+        for r in range(kf.N_Y):
+            for c in range(kf.N_Y):
+                nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
+        if math.isfinite(nis):  # a non-finite one (a diverged filter) would stay in the windowed means for good
+            nisw[h] += alpha * (nis - nisw[h])
+            nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
+            best_fit = min(best_fit, nisf[h])
+            nis_now[h] = nis
+            ld_now[h] = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
     # data that no tyre explains (an accelerometer reading what no force causes, a sensor fault the input
     # checks cannot see) are no evidence about the tyres: every filter's innovation is large, and their
     # differences would drag the estimate wherever the garbage points (tests/test_estimator.py)
@@ -386,7 +383,7 @@ def bank_step(
     forget_op = prm[B_LEARN_FORGET] if track else prm[B_IDLE_FORGET]
     for h in range(lo, hi + 1):
         nis, ld = nis_now[h], ld_now[h]
-        measured = not math.isnan(nis)  # observed, the filter running, its innovation finite
+        measured = not math.isnan(nis)
         _evidence(logl, prior, h, forget, measured and learn, nis, ld)
         _evidence(logl_op, prior, h, forget_op, measured and track, nis, ld)
         _evidence(logl_raw, prior, h, forget, measured and learn, nis, ld)
@@ -395,9 +392,6 @@ def bank_step(
     # and the operating one (the weights of the published states)
     _normalise(logl, lo, hi, prm[B_FLOOR], weight)
     _normalise(logl_op, lo, hi, prm[B_FLOOR], weight_op)
-    for h in range(lo, hi + 1):
-        if not math.isfinite(logl_raw[h]):  # never clipped, so a NaN innovation would stay in it for good
-            logl_raw[h] = logl[h]
     mean_log = 0.0
     mean_log_op = 0.0
     for h in range(lo, hi + 1):
