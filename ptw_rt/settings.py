@@ -57,14 +57,15 @@ ATTITUDE_SCHEMA = Section(
 
 # Plausibility monitor (ptw_rt/core/supervisor.py, docs/estimator.md "Plausibility"): the published rider torque
 # against the UIHOSMO on the sensors', windowed RMS of their difference over a threshold per speed band. The
-# thresholds are the largest windowed residual of every healthy ride of the evaluation matrix in that band
-# (2026-11-24: 3.74, 8.93, 4.34, 9.20 N m), times 1.3.
+# thresholds are the largest windowed residual of every healthy ride of the evaluation matrix in that band, times
+# 1.3 (`ptw-rt evaluate --matrix` prints both; 2026-11-25, the pre-observer's own weights: 3.36, 3.69, 3.58,
+# 6.32 N m).
 PLAUSIBILITY_SCHEMA = Section(
     fields={},
     optional={
         "window": (Number("s", gt=0.05, le=30), 1.0),
         "band_start_kmh": (NumberList(Number("km/h", ge=0), min_len=1, max_len=8), (0.0, 30.0, 60.0, 90.0)),
-        "torque_residual_nm": (NumberList(Number("N m", gt=0), min_len=1, max_len=8), (4.9, 11.6, 5.6, 12.0)),
+        "torque_residual_nm": (NumberList(Number("N m", gt=0), min_len=1, max_len=8), (4.4, 4.8, 4.7, 8.2)),
         "hold": (Number("s", ge=0, le=60), 1.0),
     },
 )

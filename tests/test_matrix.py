@@ -125,6 +125,23 @@ def test_targets_met_and_each_miss_flagged():
     assert "MISS" in text and "wrong_start" in text
 
 
+def test_plausibility_bands_and_the_thresholds_they_give():
+    kmh = np.array([10.0, 20.0, 40.0, 50.0, 70.0, 100.0, 120.0])
+    residual = np.array([1.0, 2.0, 3.0, np.nan, 5.0, 6.0, 4.0])
+    ratio = np.array([0.1, np.nan, 0.5, 0.2, 0.9, 0.3, 0.4])
+    one = mx.plausibility_by_band(kmh / 3.6, residual, ratio, (0.0, 30.0, 60.0, 90.0))
+    assert one == {"largest_ratio": 0.9, "largest_residual_nm": [2.0, 3.0, 5.0, 6.0]}
+    # a ride that never reached a band says nothing about it
+    two = mx.plausibility_by_band(kmh[:2] / 3.6, np.array([3.0, 0.5]), np.array([0.95, 0.1]), (0.0, 30.0, 60.0, 90.0))
+    assert two["largest_residual_nm"] == [3.0, None, None, None]
+    cells = [{"metrics": {"plausibility": one}}, {"metrics": {"plausibility": two}}]
+    cal = mx.plausibility_calibration(cells, (0.0, 30.0, 60.0, 90.0))
+    assert cal["largest_residual_nm"] == [3.0, 3.0, 5.0, 6.0]
+    assert cal["suggested_threshold_nm"] == [round(mx.PLAUSIBILITY_MARGIN * v, 1) for v in (3.0, 3.0, 5.0, 6.0)]
+    assert cal["largest_ratio"] == 0.95
+    assert "0.95" in mx.plausibility_text(cal)
+
+
 def test_reduced_matrix_returns_every_metric():
     pytest.importorskip("imufusion")
     res = mx.run_matrix(
@@ -150,6 +167,9 @@ def test_reduced_matrix_returns_every_metric():
         assert "roll_le_peer" in c["targets"] and "torque_le_half_zero" in c["targets"]
         assert c["result"]["baselines"]["ahrs_peer_roll_rmse_deg"] == m["roll_rmse_deg"]["peer"]
     assert "roll_mean_ratio_to_peer_le_0.7" in res["targets"]["overall"]
+    # the thresholds in use were learned from these figures: a healthy ride stays below them
+    cal = res["plausibility"]["matrix"]
+    assert len(cal["largest_residual_nm"]) == 4 and cal["largest_ratio"] is not None and cal["largest_ratio"] < 1.0
     json.loads(json.dumps(res))  # --json prints it as is
     text = mx.matrix_text(res)
     assert "dlc_50" in text and "tyres x0.7" in text

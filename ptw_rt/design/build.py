@@ -68,9 +68,10 @@ def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
         uio_sensors.CHOSEN_OUTPUTS,
         uio_sensors.CHOSEN_UNKNOWN,
         est.uihosmo_decay_rate,
-        est.uihosmo_output_weight,
+        uio_sensors.CHOSEN_OUTPUT_WEIGHT,
         dt,
         uio_sensors.CHOSEN_EXTRA,
+        uio_sensors.CHOSEN_INJECTION_SCALE,
     )
     data = DesignData(
         format_version=FORMAT_VERSION,

@@ -69,6 +69,9 @@ WRONG_START_MAX_CORNERING_S = 30.0
 MU_DROP_AT = 20.0  # s, mu_drop's drop (ptw_rt.sim.scenarios._mu_drop)
 MU_DROP_MAX_FOLLOW_S = 10.0
 CORNERING_LAT_ACCEL = 1.0  # m/s^2: |a_y| above this counts as cornering time
+# issue #16: the plausibility thresholds are the largest windowed residual of a healthy ride per speed band times this
+PLAUSIBILITY_MARGIN = 1.3
+PLAUSIBILITY_BANDS_KMH = (0.0, 30.0, 60.0, 90.0)  # the default bands; the matrix uses its config's
 
 
 def _r(v, nd: int = 3):
@@ -147,7 +150,22 @@ def learning_times(evaluation, after: float) -> dict:
     return out
 
 
-def cell_metrics(evaluation) -> dict:
+def plausibility_by_band(speed: np.ndarray, residual: np.ndarray, ratio: np.ndarray, band_start_kmh) -> dict:
+    """The plausibility monitor on one ride: its largest ratio and its largest windowed torque residual in each
+    speed band of `estimator.plausibility` (None where the ride never ran in the band). On healthy rides these
+    are what the thresholds are learned from (`plausibility_calibration`)."""
+    kmh = speed * 3.6
+    starts = list(band_start_kmh)
+    bands = []
+    for i, lo in enumerate(starts):
+        hi = starts[i + 1] if i + 1 < len(starts) else math.inf
+        r = residual[(kmh >= lo) & (kmh < hi) & np.isfinite(residual)]
+        bands.append(_r(float(r.max())) if r.size else None)
+    finite = ratio[np.isfinite(ratio)]
+    return {"largest_ratio": _r(float(finite.max())) if finite.size else None, "largest_residual_nm": bands}
+
+
+def cell_metrics(evaluation, band_start_kmh=PLAUSIBILITY_BANDS_KMH) -> dict:
     """Everything the matrix prints for one ride (see the module docstring)."""
     t, E, tr, m, b = evaluation.t, evaluation.estimates, evaluation.truth, evaluation.mask, evaluation.baselines
     roll = tr["roll"][m]
@@ -196,7 +214,41 @@ def cell_metrics(evaluation) -> dict:
             "implausible": int(np.count_nonzero(reasons & L.REASON_IMPLAUSIBLE)),
             "attitude_inconsistent": int(np.count_nonzero(reasons & L.REASON_ATTITUDE_INCONSISTENT)),
         },
+        "plausibility": plausibility_by_band(
+            E[:, L.E_SPEED], E[:, L.E_TORQUE_RESIDUAL], E[:, L.E_PLAUSIBILITY], band_start_kmh
+        ),
     }
+
+
+def plausibility_calibration(cells: Sequence[dict], band_start_kmh=PLAUSIBILITY_BANDS_KMH) -> dict:
+    """Over healthy rides: the largest windowed torque residual per speed band, the thresholds they give
+    (times PLAUSIBILITY_MARGIN: how `estimator.plausibility.torque_residual_nm` was set) and the largest ratio
+    to the thresholds in use."""
+    n = len(band_start_kmh)
+    largest: list[float | None] = [None] * n
+    for c in cells:
+        for i, v in enumerate(c["metrics"]["plausibility"]["largest_residual_nm"][:n]):
+            if v is not None and (largest[i] is None or v > largest[i]):
+                largest[i] = v
+    ratios = [c["metrics"]["plausibility"]["largest_ratio"] for c in cells]
+    ratios = [r for r in ratios if r is not None]
+    return {
+        "band_start_kmh": list(band_start_kmh),
+        "largest_residual_nm": largest,
+        "suggested_threshold_nm": [None if v is None else round(PLAUSIBILITY_MARGIN * v, 1) for v in largest],
+        "largest_ratio": max(ratios) if ratios else None,
+    }
+
+
+def plausibility_text(cal: dict) -> str:
+    def fmt(vals):
+        return ", ".join("-" if v is None else f"{v:g}" for v in vals)
+
+    return (
+        f"plausibility on these rides: largest ratio to the thresholds {cal['largest_ratio']}; largest windowed torque "
+        f"residual per band from {fmt(cal['band_start_kmh'])} km/h: {fmt(cal['largest_residual_nm'])} N m "
+        f"(x {PLAUSIBILITY_MARGIN:g}: {fmt(cal['suggested_threshold_nm'])} N m)"
+    )
 
 
 # ---------------------------------------------------------------- targets
@@ -288,13 +340,19 @@ def run_cell(job: tuple) -> dict:
         "scenario": scenario,
         "variant": variant,
         "perturb": list(perturb),
-        "metrics": cell_metrics(evaluation),
+        "metrics": cell_metrics(evaluation, _plausibility_bands(config)),
         "result": evaluation.result,
     }
     if scenario == "mu_drop":
         cell["mu_drop_follow"] = learning_times(evaluation, MU_DROP_AT)
     cell["wall_s"] = round(time.perf_counter() - t0, 2)
     return cell
+
+
+def _plausibility_bands(config: Path) -> tuple[float, ...]:
+    from ptw_rt.settings import load_settings
+
+    return tuple(load_settings(config).estimator.plausibility.band_start_kmh)
 
 
 def run_wrong_start(job: tuple) -> dict:
@@ -380,7 +438,12 @@ def run_matrix(
         ]
         ws["worst_cornering_s"] = _r(max(worst)) if worst else None
     targets = check_targets(matrix_cells, ws if wrong_start else None)
+    bands = _plausibility_bands(config)
     return {
+        "plausibility": {
+            "matrix": plausibility_calibration(matrix_cells, bands),
+            "all_rides": plausibility_calibration(cells, bands),
+        },
         "variants": [{"label": v, "perturb": list(p)} for v, p in variants],
         "scenarios": names,
         "cells": matrix_cells,
@@ -499,6 +562,7 @@ def matrix_text(result: dict) -> str:
             cell_table(result["cells"]),
             learning_text(result),
             targets_text(result["targets"]),
+            plausibility_text(result["plausibility"]["matrix"]),
             f"{len(result['cells'])} cells (+{len(result['extra_cells'])} extra) on {result['workers']} processes "
             f"in {result['wall_s']} s",
         ]
@@ -581,6 +645,13 @@ def matrix_markdown(result: dict) -> str:
         "",
         "```",
         targets_text(result["targets"]),
+        "```",
+        "",
+        "The plausibility monitor (issue #16) on the healthy rides, the figures its thresholds are learned from:",
+        "",
+        "```",
+        "matrix: " + plausibility_text(result["plausibility"]["matrix"]),
+        "with the robustness rides: " + plausibility_text(result["plausibility"]["all_rides"]),
         "```",
         "",
         "## The matrix",
