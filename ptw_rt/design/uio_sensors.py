@@ -335,7 +335,18 @@ def design_grid(
     ok = speeds >= floor
     points = [
         design_point(
-            p, float(u), outputs, observed, unknown, degrees, rows, decay_rate, output_weight, dt, bool(d), injection_scale
+            p,
+            float(u),
+            outputs,
+            observed,
+            unknown,
+            degrees,
+            rows,
+            decay_rate,
+            output_weight,
+            dt,
+            bool(d),
+            injection_scale,
         )
         for u, d in zip(speeds, ok, strict=True)
     ]
