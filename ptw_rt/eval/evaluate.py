@@ -32,6 +32,41 @@ from ptw_rt.sim.scenarios import SCENARIOS
 
 SETTLE_S = 5.0  # s: observers start, converge (2 s) and the fusion filter forgets its start (2 s)
 TRANSIENT_SCENARIOS = ("dlc_50", "dlc_100", "slalom_30")
+# the monitors a sensor fault the input checks cannot see should raise (issue #16), by their reason bits
+MONITORS = (("plausibility", L.REASON_IMPLAUSIBLE), ("attitude_consistency", L.REASON_ATTITUDE_INCONSISTENT))
+
+
+def monitor_alarms(t: np.ndarray, reasons: np.ndarray, ride: Ride) -> dict:
+    """Each monitor's alarms on the ride: cycles raised, and, where the perturbation injects a fault (yaw-gyro
+    scale, roll-gyro bias step, steer-encoder step), the time from the fault to its first alarm (None: none
+    before the ride ends). On a healthy ride every alarm is a false one."""
+    p = ride.perturbation
+    injected = p.yaw_gyro_scale != 1.0 or p.roll_gyro_bias_step != 0.0 or p.steer_offset_step != 0.0
+    bits = reasons.astype(np.int64)
+    out: dict = {"fault_at_s": p.fault_at if injected else None}
+    for name, bit in MONITORS:
+        raised = (bits & bit) != 0
+        entry: dict = {"cycles": int(np.count_nonzero(raised))}
+        if injected:
+            hit = np.flatnonzero(raised & (t >= p.fault_at))
+            entry["detected_after_s"] = round(float(t[hit[0]] - p.fault_at), 2) if hit.size else None
+        out[name] = entry
+    return out
+
+
+def alarms_text(alarms: dict) -> str:
+    """One line: the first alarm of each monitor after an injected fault, or the alarm count of a healthy ride."""
+    if alarms["fault_at_s"] is None:
+        return "monitor alarms (a healthy ride: false ones): " + ", ".join(
+            f"{name} {alarms[name]['cycles']} cycles" for name, _ in MONITORS
+        )
+    parts = []
+    for name, _ in MONITORS:
+        after = alarms[name]["detected_after_s"]
+        parts.append(f"{name} " + (f"{after:g} s" if after is not None else "none before the ride ends"))
+    return f"fault injected at {alarms['fault_at_s']:g} s; first alarm after: " + ", ".join(parts)
+
+
 STIFFNESS_KEYS = (
     ("front_cornering", L.E_C_ALPHA_FRONT, "c_alpha_front"),
     ("front_camber", L.E_C_GAMMA_FRONT, "c_gamma_front"),
@@ -184,6 +219,7 @@ def evaluate_ride(
         "settle_s": SETTLE_S,
         "duration_s": ride.duration,
         "crashed_at": ride.crashed_at,
+        "alarms": monitor_alarms(t, E[:, L.E_REASONS], ride),
     }
     if initial_stiffness_scale is not None:
         result["initial_stiffness_scale"] = {"front_rear": list(initial_stiffness_scale), "applied": applied}
@@ -301,6 +337,10 @@ def _table(results: list[dict]) -> str:
     lines.append("roll/peer/uio/kin/comp: roll RMSE [deg] (ours, Fusion AHRS peer, UIHOSMO alone, kinematic,")
     lines.append("complementary); tau [N m];")
     lines.append("vy [m/s]; Fy [N]; C%: stiffness error of the second-half mean [%]")
+    for r in results:  # the monitors' alarms where there is something to say (a table of healthy rides stays short)
+        a = r.get("alarms")
+        if a and (len(results) == 1 or a["fault_at_s"] is not None or any(a[n]["cycles"] for n, _ in MONITORS)):
+            lines.append(f"{r['scenario']}: {alarms_text(a)}")
     return "\n".join(lines)
 
 
