@@ -40,7 +40,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import carray, njit, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 
 class Layout:
@@ -196,6 +196,15 @@ def pack_tables(stage: Stage, design) -> tuple[np.ndarray, np.ndarray]:
     return pack(stage.table_arrays(design))
 
 
+# Views and borrowed arrays without reference counting. A slice in compiled code shares its buffer's reference
+# count: every view made, and every array handed to a function that is not inlined, costs an atomic increment
+# and decrement of it (about 600 a cycle, a third of the step's time). Compiled, ``v1``/``v2``/``v3`` and
+# ``borrowed`` make their arrays with ``carray`` on the buffer's address instead: no reference count, and a 2-D
+# or 3-D view needs no call to reshape. Safe because none outlives the call that holds the buffer: the stages
+# get views of ``packed_step``'s arguments and keep none. The Python functions are what runs with numba's JIT
+# off (the ordinary slices); a buffer that is not C-contiguous gets them too.
+
+
 @intrinsic
 def _float64_at(typingctx, address):
     """The integer ``address`` as a float64 pointer (for ``carray``)."""
@@ -207,26 +216,69 @@ def _float64_at(typingctx, address):
     return sig, codegen
 
 
-# The views below are made with ``carray`` on the buffer's address, not by slicing: a slice shares the buffer's
-# reference count, and every view made or passed to a function in compiled code then costs an atomic increment
-# and decrement of it (about 600 per cycle, a third of the step's time); a ``carray`` view has none (and a 2-D or
-# 3-D one needs no call to reshape). Safe because a view never outlives the call that has the buffer: the
-# stages get views of ``packed_step``'s arguments and keep none.
+@intrinsic
+def _data_pointer(typingctx, a):
+    """A C-contiguous array's data pointer (for ``carray``)."""
+    if not isinstance(a, types.Array) or a.layout != "C":
+        return None
+    sig = types.CPointer(a.dtype)(a)
+
+    def codegen(context, builder, signature, args):
+        return context.make_array(signature.args[0])(context, builder, args[0]).data
+
+    return sig, codegen
 
 
-@njit(cache=True, inline="always")
+def _contiguous_float64(buf) -> bool:
+    return isinstance(buf, types.Array) and buf.layout == "C" and buf.dtype == types.float64
+
+
+def borrowed(a: np.ndarray) -> np.ndarray:
+    """The same array, without its reference count when compiled (for the arguments of a compiled loop or step
+    that hands them on to other compiled functions; valid while the caller holds ``a``: within the call)."""
+    return a
+
+
+@overload(borrowed, inline="always")
+def _borrowed_compiled(a):
+    if isinstance(a, types.Array) and a.layout == "C":
+        return lambda a: carray(_data_pointer(a), a.shape)
+    return lambda a: a
+
+
 def v1(buf: np.ndarray, index: np.ndarray, k: int) -> np.ndarray:
-    return carray(_float64_at(buf.ctypes.data + 8 * index[k, 0]), (index[k, 1] - index[k, 0],))
+    return buf[index[k, 0] : index[k, 1]]
 
 
-@njit(cache=True, inline="always")
 def v2(buf: np.ndarray, index: np.ndarray, k: int) -> np.ndarray:
-    return carray(_float64_at(buf.ctypes.data + 8 * index[k, 0]), (index[k, 2], index[k, 3]))
+    return buf[index[k, 0] : index[k, 1]].reshape((index[k, 2], index[k, 3]))
 
 
-@njit(cache=True, inline="always")
 def v3(buf: np.ndarray, index: np.ndarray, k: int) -> np.ndarray:
-    return carray(_float64_at(buf.ctypes.data + 8 * index[k, 0]), (index[k, 2], index[k, 3], index[k, 4]))
+    return buf[index[k, 0] : index[k, 1]].reshape((index[k, 2], index[k, 3], index[k, 4]))
+
+
+@overload(v1, inline="always")
+def _v1_compiled(buf, index, k):
+    if not _contiguous_float64(buf):
+        return v1
+    return lambda buf, index, k: carray(_float64_at(buf.ctypes.data + 8 * index[k, 0]), (index[k, 1] - index[k, 0],))
+
+
+@overload(v2, inline="always")
+def _v2_compiled(buf, index, k):
+    if not _contiguous_float64(buf):
+        return v2
+    return lambda buf, index, k: carray(_float64_at(buf.ctypes.data + 8 * index[k, 0]), (index[k, 2], index[k, 3]))
+
+
+@overload(v3, inline="always")
+def _v3_compiled(buf, index, k):
+    if not _contiguous_float64(buf):
+        return v3
+    return lambda buf, index, k: carray(
+        _float64_at(buf.ctypes.data + 8 * index[k, 0]), (index[k, 2], index[k, 3], index[k, 4])
+    )
 
 
 @njit(cache=True)
