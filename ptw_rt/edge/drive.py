@@ -96,7 +96,7 @@ def initial_state(t0: float, sample_time: float, cycles: int) -> np.ndarray:
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _close_cycle(
     now: float,
     c: int,
