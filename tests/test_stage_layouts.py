@@ -10,10 +10,11 @@ import pkgutil
 
 import numpy as np
 import pytest
+from numba import njit
 
 from ptw_rt import core
 from ptw_rt.core import estimator as E  # noqa: N812
-from ptw_rt.core.stage import Layout, pack, v1, v2, v3
+from ptw_rt.core.stage import Layout, borrowed, pack, v1, v2, v3
 from ptw_rt.paths import PROJECT_ROOT
 
 
@@ -105,6 +106,27 @@ def test_pack_and_views_round_trip():
     np.testing.assert_array_equal(v1(buf, index, 0), a)
     np.testing.assert_array_equal(v2(buf, index, 1), b)
     np.testing.assert_array_equal(v3(buf, index, 2), c)
+
+
+@njit
+def _compiled_views(buf, index, src):
+    got = (v1(buf, index, 0).copy(), v2(buf, index, 1).copy(), v3(buf, index, 2).copy(), borrowed(src).copy())
+    v3(buf, index, 2)[1, 2, 3] = -1.0  # a view, not a copy
+    return got
+
+
+def test_compiled_views_round_trip():
+    """Compiled, the views and `borrowed` are carrays on the buffer (no reference count): the same numbers and
+    memory as the slices."""
+    a, b, c = np.arange(3.0), np.arange(6.0).reshape(2, 3), np.arange(24.0).reshape(2, 3, 4)
+    buf, index = pack([a, b, c])
+    src = np.arange(12, dtype=np.int64).reshape(3, 4)
+    got = _compiled_views(buf, index, src)
+    for x, y in zip(got, (a, b, c, src), strict=True):
+        np.testing.assert_array_equal(x, y)
+        assert x.dtype == y.dtype
+    assert v3(buf, index, 2)[1, 2, 3] == -1.0
+    assert _compiled_views(buf, index, src[:, ::2])[3].tolist() == src[:, ::2].tolist()  # not contiguous: as is
 
 
 def test_estimator_buffers_are_the_stages(settings, design):

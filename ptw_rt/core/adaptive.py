@@ -52,7 +52,7 @@ def regressor_into(chi: np.ndarray, x: np.ndarray, u: float, consts: np.ndarray)
     chi[1, 3] = u * x[PHI] / sigma_r
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def adaptive_step(
     state: np.ndarray,
     chi: np.ndarray,

@@ -96,7 +96,7 @@ def hdd_lambda(n: int, recursive: bool = False) -> np.ndarray:
 # ----- jitted kernels ------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def hdd_init(z: np.ndarray, f: float) -> None:
     """Initialise on a sample: ``z_0 = f``, derivatives 0. A non-finite ``f`` gives ``z_0 = 0``."""
     for i in range(z.shape[0]):
@@ -105,12 +105,12 @@ def hdd_init(z: np.ndarray, f: float) -> None:
         z[0] = f
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _valid_inputs(f: float, L: float, tau: float, substeps: int) -> bool:
     return math.isfinite(f) and math.isfinite(L) and L >= 0.0 and math.isfinite(tau) and tau > 0.0 and substeps >= 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _state_finite(z: np.ndarray) -> bool:
     for i in range(z.shape[0]):
         if not math.isfinite(z[i]):
@@ -118,7 +118,7 @@ def _state_finite(z: np.ndarray) -> bool:
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _hdd_update(z: np.ndarray, f: float, L: float, h: float, lam: np.ndarray) -> None:
     """One HDD step of length ``h`` on the held sample ``f`` (in place, ascending i: z_{i+j} are still old)."""
     n = z.shape[0] - 1
@@ -143,7 +143,7 @@ def _hdd_update(z: np.ndarray, f: float, L: float, h: float, lam: np.ndarray) ->
     z[n] = z[n] - h * lam[0] * L * sg
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def hdd_step(z: np.ndarray, f: float, L: float, tau: float, lam: np.ndarray, substeps: int = 1) -> None:
     """Advance the order-``n`` HDD (``n = len(z) - 1``) by one sample period ``tau`` on the sample ``f``.
 

@@ -100,7 +100,7 @@ from ptw_rt.core.layout import (
     E_YAW_RATE,
     ESTIMATES_SIZE,
 )
-from ptw_rt.core.stage import Stage, pack, v1
+from ptw_rt.core.stage import Stage, borrowed, pack, v1
 
 # share of the configured initial bias uncertainty a bias restored from the state file starts with
 RESTORED_BIAS_SHARE = 0.3
@@ -214,6 +214,8 @@ def packed_step(
     ti: np.ndarray,
 ) -> None:
     """One cycle: every stage on views of the two flat buffers (state `s`, tables `t`, and their index rows)."""
+    # no reference counting on anything handed on (`stage.borrowed`): the caller holds the arrays
+    sample, est, s, si, t, ti = borrowed(sample), borrowed(est), borrowed(s), borrowed(si), borrowed(t), borrowed(ti)
     o_in = _out(s, si, INPUTS)
     o_spd = _out(s, si, SPEED)
     o_att = _out(s, si, ATTITUDE)

@@ -133,7 +133,7 @@ def lateral_yaw_constants(p: VehicleParameters) -> np.ndarray:
 # ----- jitted kernels ------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _split(s_per_mass: float, mz_per_inertia: float, geom: np.ndarray, out: np.ndarray) -> None:
     S = geom[G_MASS] * s_per_mass
     Mz = geom[G_IZ] * mz_per_inertia
@@ -143,7 +143,7 @@ def _split(s_per_mass: float, mz_per_inertia: float, geom: np.ndarray, out: np.n
     out[1] = (a_f * S - Mz) / wb
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _valid(u: float, r: float, a_y: float, dt: float, m_known: float) -> bool:
     return (
         math.isfinite(u)
@@ -155,7 +155,7 @@ def _valid(u: float, r: float, a_y: float, dt: float, m_known: float) -> bool:
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _sign(v: float) -> float:
     return 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
 
@@ -256,7 +256,7 @@ def _sta_update(e: float, z: float, c: float, k1: float, k2: float, h: float, im
     return e + h * (c - z - k1 * math.sqrt(abs(e)) * sg), z + h * k2 * sg
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def sta_step(
     x: np.ndarray,
     out: np.ndarray,

@@ -34,7 +34,7 @@ NL_ROLL_MOMENT, NL_GYRO_TOTAL, NL_GYRO_FRONT, NL_STEER_STIFFNESS, NL_MFE, NL_G, 
 N_D = 4  # lateral, yaw, roll, steer rows
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def nonlinear_correction(d: np.ndarray, z: np.ndarray, u: float, nl: np.ndarray) -> None:
     """d = (nonlinear rows) - (linear rows) at state z, per docs/simulator.md's plant equations:
 
@@ -74,28 +74,52 @@ def kalman_step(
 ) -> None:
     """One cycle; `out` (>= N_Z floats) receives the corrected state. `roll_init` seeds phi on (re)start."""
     i, w = grid_position(grid, u)
-    z = state[0:N_Z]
-    if state[INIT] == 0.0:
+    kalman_step_at(state, 0, out, y, u, roll_init, i, w, Phi, K, C, Gd, nl, d)
+
+
+@njit(cache=True, inline="always")
+def kalman_step_at(
+    st: np.ndarray,
+    s0: int,
+    out: np.ndarray,
+    y: np.ndarray,
+    u: float,
+    roll_init: float,
+    j: int,
+    w: float,
+    Phi: np.ndarray,
+    K: np.ndarray,
+    C: np.ndarray,
+    Gd: np.ndarray,
+    nl: np.ndarray,
+    d: np.ndarray,
+) -> None:
+    """`kalman_step` on the filter whose state is ``st[s0 : s0 + STATE_SIZE]``, between table rows j and j + 1
+    (its grid position, `grid_position`, found once by the caller; the tyre bank's tables hold every
+    hypothesis's grid one after the other). Why offsets instead of slices, and inlined: every array view made
+    or passed at run time costs an atomic reference count increment and decrement (~6 ns each), which were
+    a third of the bank's time. Every matrix entry is `schedule.lerp`'s, the same arithmetic bit for bit."""
+    if st[s0 + INIT] == 0.0:
         for a in range(N_Z):
-            z[a] = 0.0
-        z[PHI] = roll_init
-        z[DELTA] = y[0]
-        z[R] = y[1]
-        z[PHI_DOT] = y[2]
-        state[INIT] = 1.0
+            st[s0 + a] = 0.0
+        st[s0 + PHI] = roll_init
+        st[s0 + DELTA] = y[0]
+        st[s0 + R] = y[1]
+        st[s0 + PHI_DOT] = y[2]
+        st[s0 + INIT] = 1.0
     for a in range(N_Z):
-        out[a] = z[a]
+        out[a] = st[s0 + a]
     for r in range(N_Y):
         e = y[r]
         for c in range(N_Z):
-            e -= C[r, c] * z[c]
+            e -= C[r, c] * st[s0 + c]
         for a in range(N_Z):
-            out[a] += lerp(K, i, w, a, r) * e
+            out[a] += lerp(K, j, w, a, r) * e
     nonlinear_correction(d, out, u, nl)
     for a in range(N_Z):
         acc = 0.0
         for b in range(N_Z):
-            acc += lerp(Phi, i, w, a, b) * out[b]
+            acc += lerp(Phi, j, w, a, b) * out[b]
         for b in range(N_D):
-            acc += lerp(Gd, i, w, a, b) * d[b]
-        z[a] = acc
+            acc += lerp(Gd, j, w, a, b) * d[b]
+        st[s0 + a] = acc

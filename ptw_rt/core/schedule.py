@@ -25,7 +25,7 @@ def grid_position(grid: np.ndarray, u: float) -> tuple[int, float]:
     return i, s - i
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # an array passed to a call costs atomic reference counting
 def lerp(table: np.ndarray, i: int, w: float, r: int, c: int) -> float:
     """Entry (r, c) of the matrix interpolated between grid points i and i + 1."""
     return (1.0 - w) * table[i, r, c] + w * table[i + 1, r, c]

@@ -216,7 +216,7 @@ def _held_reasons(st: np.ndarray) -> int:
     return bits
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _plausibility(
     st: np.ndarray, prm: np.ndarray, out: np.ndarray, cond: np.ndarray, diag: np.ndarray, lateral: np.ndarray, u: float
 ) -> bool:
@@ -253,7 +253,7 @@ def _plausibility(
     return st[ST_IMPLAUSIBLE_UNTIL] > st[ST_TIME]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _steer_kinematics(st: np.ndarray, prm: np.ndarray, cond: np.ndarray, u: float) -> bool:
     """Is the steer angle contradicted by the kinematics (module docstring)? Compared while the observers run
     (speed valid), on sound inputs and nearly straight; the running mean is held otherwise, reset when the

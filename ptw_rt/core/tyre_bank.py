@@ -222,7 +222,7 @@ def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
         st[h * BLOCK + kf.INIT] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _evidence(logl: np.ndarray, prior: np.ndarray, h: int, forget: float, take: bool, nis: float, ld: float) -> None:
     """One cycle of hypothesis h's log-likelihood: forget towards the prior, and add this cycle's if `take`."""
     logl[h] = prior[h] + forget * (logl[h] - prior[h])
@@ -230,7 +230,7 @@ def _evidence(logl: np.ndarray, prior: np.ndarray, h: int, forget: float, take: 
         logl[h] -= 0.5 * (nis + ld)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _normalise(logl: np.ndarray, lo: int, hi: int, floor: float, weight: np.ndarray) -> None:
     """The posterior weights over the window, exp(logl - best) / their sum, into `weight`; every log-likelihood
     kept within `floor` of the best (a hypothesis can always come back: a road can change)."""
@@ -270,7 +270,7 @@ def _sub_grid_peak(logl: np.ndarray, log_scale: np.ndarray, lo: int, hi: int, m:
     return min(max(-b / (2.0 * a), 0.5 * (x0 + x1)), 0.5 * (x1 + x2))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _most_likely(logl: np.ndarray, lo: int, hi: int) -> int:
     best = lo
     for h in range(lo + 1, hi + 1):
@@ -279,7 +279,7 @@ def _most_likely(logl: np.ndarray, lo: int, hi: int) -> int:
     return best
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def bank_step(
     st: np.ndarray,
     out: np.ndarray,
@@ -357,12 +357,12 @@ def bank_step(
         ld_now[h] = 0.0
         if not (observe and st[h * BLOCK + kf.INIT] != 0.0):
             continue
-        z = st[h * BLOCK : h * BLOCK + kf.N_Z]
+        z0 = h * BLOCK  # its z: indexed, not sliced (a view costs atomic reference counting, kf.kalman_step_at)
         j = h * G + i
         for r in range(kf.N_Y):
             acc = y[r]
             for c in range(kf.N_Z):
-                acc -= C[r, c] * z[c]
+                acc -= C[r, c] * st[z0 + c]
             e[r] = acc
         nis = 0.0
         for r in range(kf.N_Y):
@@ -409,21 +409,8 @@ def bank_step(
     for k in range(kf.N_Z):
         out[OUT_Z + k] = 0.0
     for h in range(lo, hi + 1):
-        block = h * G
-        kf.kalman_step(
-            st[h * BLOCK : (h + 1) * BLOCK],
-            zh,
-            y,
-            u,
-            roll_init,
-            grid,
-            Phi[block : block + G],
-            K[block : block + G],
-            C,
-            Gd[block : block + G],
-            nl,
-            d,
-        )
+        # filter h's state block and its tables' rows around u (hypothesis h's grid starts at row h G)
+        kf.kalman_step_at(st, h * BLOCK, zh, y, u, roll_init, h * G + i, w, Phi, K, C, Gd, nl, d)
         for k in range(kf.N_Z):
             out[OUT_Z + k] += weight_op[h] * zh[k]
     out[OUT_SCALE] = math.exp(mean_log)

@@ -46,7 +46,7 @@ def new_state() -> np.ndarray:
     return np.zeros(STATE_SIZE)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def uihosmo_step(
     state: np.ndarray,
     out: np.ndarray,

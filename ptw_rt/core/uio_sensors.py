@@ -138,7 +138,7 @@ def stage_tables(design) -> tuple[np.ndarray, ...]:
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _measurement(code: int, steer: float, yaw_rate: float, roll_rate: float, lat_accel: float) -> float:
     if code == M_STEER:
         return steer
@@ -149,14 +149,14 @@ def _measurement(code: int, steer: float, yaw_rate: float, roll_rate: float, lat
     return lat_accel
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def uio_sensors_reset(state: np.ndarray) -> None:
     """Forget everything (next step re-initialises on its measurements)."""
     for k in range(STATE_SIZE):
         state[k] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _finite_state(state: np.ndarray) -> bool:
     for k in range(ST_TMP):
         if not math.isfinite(state[k]):
@@ -164,7 +164,7 @@ def _finite_state(state: np.ndarray) -> bool:
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def uio_sensors_step(
     state: np.ndarray,
     out: np.ndarray,

@@ -31,7 +31,7 @@ from ptw_rt.core.layout import (
     MODE_VALID,
     SAMPLE_SIZE,
 )
-from ptw_rt.core.stage import Layout
+from ptw_rt.core.stage import Layout, borrowed
 from ptw_rt.edge import encoding as en
 from ptw_rt.edge import tracking as tr
 
@@ -96,7 +96,7 @@ def initial_state(t0: float, sample_time: float, cycles: int) -> np.ndarray:
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _close_cycle(
     now: float,
     c: int,
@@ -183,6 +183,14 @@ def drive_block(
     out: np.ndarray,
 ) -> int:
     """Drive frames ``start..`` of the block; ``out`` = [next frame, cycles written, frames written]."""
+    # no reference counting on what the loop hands on per frame and per cycle (`ptw_rt.core.stage.borrowed`: an
+    # atomic increment and decrement per array and call otherwise); the caller holds the arrays
+    inputs, frame_values = borrowed(inputs), borrowed(frame_values)
+    tstate, tparams = borrowed(tstate), borrowed(tparams)
+    sample, est, s, si, t, ti = borrowed(sample), borrowed(est), borrowed(s), borrowed(si), borrowed(t), borrowed(ti)
+    plan, estate, process = borrowed(plan), borrowed(estate), borrowed(process)
+    cycle_times, samples, estimates = borrowed(cycle_times), borrowed(samples), borrowed(estimates)
+    frame_end, messages, words, values = borrowed(frame_end), borrowed(messages), borrowed(words), borrowed(values)
     i = start
     n = times.shape[0]
     c = 0

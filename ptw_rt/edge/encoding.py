@@ -79,7 +79,7 @@ EN_COUNTERS, EN_SENT = STATE.offsets
 _CRC8 = np.array(CRC8_TABLE, dtype=np.int64)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _pack_word(plan: np.ndarray, b: int, n: int, values: np.ndarray) -> int:
     """The message's little-endian word from its values (MessageLayout.pack's arithmetic), CRC in byte 0."""
     word = 0
@@ -103,7 +103,7 @@ def _pack_word(plan: np.ndarray, b: int, n: int, values: np.ndarray) -> int:
     return word
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def encode_message(
     plan: np.ndarray,
     state: np.ndarray,
@@ -168,7 +168,7 @@ def encode_message(
     return _pack_word(plan, b, n, values)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def encode_cycle(
     plan: np.ndarray,
     state: np.ndarray,

@@ -123,7 +123,7 @@ def track_restart(state: np.ndarray) -> None:
     state[TR_REASONS] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def track_values(state: np.ndarray, params: np.ndarray, k: int, t: float, values, counted: bool) -> None:
     """Input ``k``'s decoded signals (``values[j]``, DBC order) stamped ``t``; ``counted``: a CAN frame, whose
     rolling counter is checked."""
@@ -155,18 +155,18 @@ def track_values(state: np.ndarray, params: np.ndarray, k: int, t: float, values
     state[TR_FRESH] = int(state[TR_FRESH]) | bit
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def track_decode_error(state: np.ndarray, k: int) -> None:
     state[TR_DECODE_ERRORS + k] += 1.0
     state[TR_REASONS] = int(state[TR_REASONS]) | REASON_DECODE_ERRORS
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def track_unknown(state: np.ndarray) -> None:
     state[TR_UNKNOWN_IDS] += 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def track_fill(state: np.ndarray, params: np.ndarray, sample: np.ndarray, now: float) -> None:
     """Write the cycle's Sample at time ``now`` and start collecting the next cycle."""
     stale_bits = 0
