@@ -266,6 +266,19 @@ def build_logs(d: Path) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="session")
+def warm_numba_cache(tmp_path_factory) -> None:
+    """The estimator's machine code in the numba cache the CLI subprocesses load (they inherit this process's
+    NUMBA_CACHE_DIR). On a cold cache (a fresh install, or the first run after the source changed) each would
+    compile it itself, three at a time on two cores, against the tests' timeouts: compiled once here instead,
+    in process, by a replay of a clean little log (the work the first replay test would do anyway)."""
+    from ptw_rt.apps.replay import replay_log
+
+    d = tmp_path_factory.mktemp("warm")
+    log = _write(d / "clean.log", "\n".join(clean_log_lines()) + "\n")
+    replay_log(log, d / "out.log", None)
+
+
+@pytest.fixture(scope="session")
 def hostile_dir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("hostile")
 

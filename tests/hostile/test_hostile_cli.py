@@ -14,6 +14,8 @@ import pytest
 from .conftest import run_cli, run_many
 
 TIMEOUT = 90.0
+# on a cold numba cache the subprocesses would each compile the estimator (and say so on stderr): once, here, first
+pytestmark = pytest.mark.usefixtures("warm_numba_cache")
 
 
 def _assert_one_line_refusal(args, returncode, out, err, seconds, expected_rc=2):
