@@ -64,7 +64,7 @@ def _remove_other_versions(base: Path, keep: str) -> None:
 
 def is_cold(module: str = "estimator") -> bool:
     """True when the jitted functions of ``ptw_rt/core/<module>.py`` have no cached machine code for this version
-    of the source (the first run after an install or an upgrade: compiling takes about 30 s). False when the
+    of the source (the first run after an install or an upgrade: compiling takes about 40 s). False when the
     cache cannot be known or numba's JIT is off (nothing to compile)."""
     try:
         if os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0"):
@@ -77,7 +77,7 @@ def is_cold(module: str = "estimator") -> bool:
         return False
 
 
-COMPILING_NOTE = "compiling the estimator, about 30 s, once (numba cache: {cache})"
+COMPILING_NOTE = "compiling the estimator, about 40 s, once (numba cache: {cache})"
 
 
 def announce_compile(stream=None) -> bool:

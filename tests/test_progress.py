@@ -49,7 +49,7 @@ def test_cold_cache_is_announced_once(tmp_path, monkeypatch):
     monkeypatch.delenv("NUMBA_DISABLE_JIT", raising=False)
     buf = io.StringIO()
     assert _numba_cache.is_cold() and _numba_cache.announce_compile(buf)
-    assert buf.getvalue() == f"compiling the estimator, about 30 s, once (numba cache: {tmp_path})\n"
+    assert buf.getvalue() == f"compiling the estimator, about 40 s, once (numba cache: {tmp_path})\n"
     (tmp_path / "core_0123").mkdir()
     (tmp_path / "core_0123" / "estimator.estimator_step-242.py311.nbi").write_bytes(b"")
     assert not _numba_cache.is_cold() and not _numba_cache.announce_compile(io.StringIO())
