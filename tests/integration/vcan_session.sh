@@ -49,6 +49,9 @@ if [ ! -r "$PTW_VCAN_ENV" ]; then
 fi
 # shellcheck disable=SC1090
 . "$PTW_VCAN_ENV"
+# the numba cache the host warmed (the guest's HOME is /root, whatever the host user's is): without it the daemon
+# would compile the estimator inside the VM, slower than the start-up timeout on a fresh install
+if [ -n "${NUMBA_CACHE_DIR:-}" ]; then export NUMBA_CACHE_DIR; fi
 
 LOG="$RESULTS/session.log"
 STATUS="$RESULTS/status.env"
