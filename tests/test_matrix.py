@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from ptw_rt.eval import matrix as mx
+from ptw_rt.eval.evaluate import plausibility_by_band
 
 
 def test_valid_stiffness_stats_on_synthetic_arrays():
@@ -81,7 +82,7 @@ def _cell(
                 "uihosmo_pct_of_peak": uio_pct,
             },
             "stiffness_valid": {k: dict(sv) for k, *_ in mx.STIFFNESS},
-            "alarm_cycles": {"implausible": alarms, "attitude_inconsistent": 0},
+            "alarm_cycles": {"plausibility": alarms, "attitude_consistency": 0},
         },
     }
 
@@ -129,13 +130,17 @@ def test_plausibility_bands_and_the_thresholds_they_give():
     kmh = np.array([10.0, 20.0, 40.0, 50.0, 70.0, 100.0, 120.0])
     residual = np.array([1.0, 2.0, 3.0, np.nan, 5.0, 6.0, 4.0])
     ratio = np.array([0.1, np.nan, 0.5, 0.2, 0.9, 0.3, 0.4])
-    one = mx.plausibility_by_band(kmh / 3.6, residual, ratio, (0.0, 30.0, 60.0, 90.0))
-    assert one == {"largest_ratio": 0.9, "largest_residual_nm": [2.0, 3.0, 5.0, 6.0]}
+    one = plausibility_by_band(kmh / 3.6, residual, ratio, (0.0, 30.0, 60.0, 90.0))
+    assert one == {
+        "band_start_kmh": [0.0, 30.0, 60.0, 90.0],
+        "largest_ratio": 0.9,
+        "largest_residual_nm": [2.0, 3.0, 5.0, 6.0],
+    }
     # a ride that never reached a band says nothing about it
-    two = mx.plausibility_by_band(kmh[:2] / 3.6, np.array([3.0, 0.5]), np.array([0.95, 0.1]), (0.0, 30.0, 60.0, 90.0))
+    two = plausibility_by_band(kmh[:2] / 3.6, np.array([3.0, 0.5]), np.array([0.95, 0.1]), (0.0, 30.0, 60.0, 90.0))
     assert two["largest_residual_nm"] == [3.0, None, None, None]
     cells = [{"metrics": {"plausibility": one}}, {"metrics": {"plausibility": two}}]
-    cal = mx.plausibility_calibration(cells, (0.0, 30.0, 60.0, 90.0))
+    cal = mx.plausibility_calibration(cells)
     assert cal["largest_residual_nm"] == [3.0, 3.0, 5.0, 6.0]
     assert cal["suggested_threshold_nm"] == [round(mx.PLAUSIBILITY_MARGIN * v, 1) for v in (3.0, 3.0, 5.0, 6.0)]
     assert cal["largest_ratio"] == 0.95

@@ -54,6 +54,25 @@ def monitor_alarms(t: np.ndarray, reasons: np.ndarray, ride: Ride) -> dict:
     return out
 
 
+def plausibility_by_band(speed: np.ndarray, residual: np.ndarray, ratio: np.ndarray, band_start_kmh) -> dict:
+    """The plausibility monitor on one ride: its largest ratio and its largest windowed torque residual in each
+    speed band of `estimator.plausibility` (None where the ride never ran in the band). On healthy rides these
+    are what the thresholds are learned from (`ptw_rt.eval.matrix.plausibility_calibration`)."""
+    kmh = speed * 3.6
+    starts = [float(b) for b in band_start_kmh]
+    bands = []
+    for i, lo in enumerate(starts):
+        hi = starts[i + 1] if i + 1 < len(starts) else math.inf
+        r = residual[(kmh >= lo) & (kmh < hi) & np.isfinite(residual)]
+        bands.append(_round(float(r.max())) if r.size else None)
+    finite = ratio[np.isfinite(ratio)]
+    return {
+        "band_start_kmh": starts,
+        "largest_ratio": _round(float(finite.max())) if finite.size else None,
+        "largest_residual_nm": bands,
+    }
+
+
 def alarms_text(alarms: dict) -> str:
     """One line: the first alarm of each monitor after an injected fault, or the alarm count of a healthy ride."""
     if alarms["fault_at_s"] is None:
@@ -220,6 +239,12 @@ def evaluate_ride(
         "duration_s": ride.duration,
         "crashed_at": ride.crashed_at,
         "alarms": monitor_alarms(t, E[:, L.E_REASONS], ride),
+        "plausibility": plausibility_by_band(
+            E[:, L.E_SPEED],
+            E[:, L.E_TORQUE_RESIDUAL],
+            E[:, L.E_PLAUSIBILITY],
+            settings.estimator.plausibility.band_start_kmh,
+        ),
     }
     if initial_stiffness_scale is not None:
         result["initial_stiffness_scale"] = {"front_rear": list(initial_stiffness_scale), "applied": applied}

@@ -71,7 +71,6 @@ MU_DROP_MAX_FOLLOW_S = 10.0
 CORNERING_LAT_ACCEL = 1.0  # m/s^2: |a_y| above this counts as cornering time
 # issue #16: the plausibility thresholds are the largest windowed residual of a healthy ride per speed band times this
 PLAUSIBILITY_MARGIN = 1.3
-PLAUSIBILITY_BANDS_KMH = (0.0, 30.0, 60.0, 90.0)  # the default bands; the matrix uses its config's
 
 
 def _r(v, nd: int = 3):
@@ -150,22 +149,7 @@ def learning_times(evaluation, after: float) -> dict:
     return out
 
 
-def plausibility_by_band(speed: np.ndarray, residual: np.ndarray, ratio: np.ndarray, band_start_kmh) -> dict:
-    """The plausibility monitor on one ride: its largest ratio and its largest windowed torque residual in each
-    speed band of `estimator.plausibility` (None where the ride never ran in the band). On healthy rides these
-    are what the thresholds are learned from (`plausibility_calibration`)."""
-    kmh = speed * 3.6
-    starts = list(band_start_kmh)
-    bands = []
-    for i, lo in enumerate(starts):
-        hi = starts[i + 1] if i + 1 < len(starts) else math.inf
-        r = residual[(kmh >= lo) & (kmh < hi) & np.isfinite(residual)]
-        bands.append(_r(float(r.max())) if r.size else None)
-    finite = ratio[np.isfinite(ratio)]
-    return {"largest_ratio": _r(float(finite.max())) if finite.size else None, "largest_residual_nm": bands}
-
-
-def cell_metrics(evaluation, band_start_kmh=PLAUSIBILITY_BANDS_KMH) -> dict:
+def cell_metrics(evaluation) -> dict:
     """Everything the matrix prints for one ride (see the module docstring)."""
     t, E, tr, m, b = evaluation.t, evaluation.estimates, evaluation.truth, evaluation.mask, evaluation.baselines
     roll = tr["roll"][m]
@@ -183,7 +167,6 @@ def cell_metrics(evaluation, band_start_kmh=PLAUSIBILITY_BANDS_KMH) -> dict:
     t_peak = float(np.max(np.abs(torque))) if torque.size else 0.0
     t_zero = _rms(torque)
     valid_bits = E[:, L.E_VALID].astype(np.int64)
-    reasons = E[:, L.E_REASONS].astype(np.int64)
     uio_rmse = _rms(E[m, L.E_TORQUE_UIO_SENSORS] - torque)
     stiffness = {}
     for name, col, tcol, bit in STIFFNESS:
@@ -210,20 +193,16 @@ def cell_metrics(evaluation, band_start_kmh=PLAUSIBILITY_BANDS_KMH) -> dict:
         },
         "stiffness_valid": stiffness,
         # alarms on a healthy ride are false alarms: cycles with each monitor's reason bit raised
-        "alarm_cycles": {
-            "implausible": int(np.count_nonzero(reasons & L.REASON_IMPLAUSIBLE)),
-            "attitude_inconsistent": int(np.count_nonzero(reasons & L.REASON_ATTITUDE_INCONSISTENT)),
-        },
-        "plausibility": plausibility_by_band(
-            E[:, L.E_SPEED], E[:, L.E_TORQUE_RESIDUAL], E[:, L.E_PLAUSIBILITY], band_start_kmh
-        ),
+        "alarm_cycles": {name: a["cycles"] for name, a in evaluation.result["alarms"].items() if name != "fault_at_s"},
+        "plausibility": evaluation.result["plausibility"],
     }
 
 
-def plausibility_calibration(cells: Sequence[dict], band_start_kmh=PLAUSIBILITY_BANDS_KMH) -> dict:
-    """Over healthy rides: the largest windowed torque residual per speed band, the thresholds they give
-    (times PLAUSIBILITY_MARGIN: how `estimator.plausibility.torque_residual_nm` was set) and the largest ratio
-    to the thresholds in use."""
+def plausibility_calibration(cells: Sequence[dict]) -> dict:
+    """Over healthy rides (of one configuration: the same speed bands): the largest windowed torque residual per
+    band, the thresholds they give (times PLAUSIBILITY_MARGIN: how `estimator.plausibility.torque_residual_nm` was
+    set) and the largest ratio to the thresholds in use."""
+    band_start_kmh = cells[0]["metrics"]["plausibility"]["band_start_kmh"] if cells else []
     n = len(band_start_kmh)
     largest: list[float | None] = [None] * n
     for c in cells:
@@ -340,19 +319,13 @@ def run_cell(job: tuple) -> dict:
         "scenario": scenario,
         "variant": variant,
         "perturb": list(perturb),
-        "metrics": cell_metrics(evaluation, _plausibility_bands(config)),
+        "metrics": cell_metrics(evaluation),
         "result": evaluation.result,
     }
     if scenario == "mu_drop":
         cell["mu_drop_follow"] = learning_times(evaluation, MU_DROP_AT)
     cell["wall_s"] = round(time.perf_counter() - t0, 2)
     return cell
-
-
-def _plausibility_bands(config: Path) -> tuple[float, ...]:
-    from ptw_rt.settings import load_settings
-
-    return tuple(load_settings(config).estimator.plausibility.band_start_kmh)
 
 
 def run_wrong_start(job: tuple) -> dict:
@@ -438,11 +411,10 @@ def run_matrix(
         ]
         ws["worst_cornering_s"] = _r(max(worst)) if worst else None
     targets = check_targets(matrix_cells, ws if wrong_start else None)
-    bands = _plausibility_bands(config)
     return {
         "plausibility": {
-            "matrix": plausibility_calibration(matrix_cells, bands),
-            "all_rides": plausibility_calibration(cells, bands),
+            "matrix": plausibility_calibration(matrix_cells),
+            "all_rides": plausibility_calibration(cells),
         },
         "variants": [{"label": v, "perturb": list(p)} for v, p in variants],
         "scenarios": names,
