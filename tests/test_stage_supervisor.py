@@ -13,7 +13,6 @@ from ptw_rt.core import inputs as inp
 from ptw_rt.core import lateral as lat
 from ptw_rt.core import layout as lay
 from ptw_rt.core import speed as spd
-from ptw_rt.core import stiffness as stf
 from ptw_rt.core import supervisor as sup
 
 
@@ -29,20 +28,27 @@ def _step(
     roll_sd=0.001,
     rejected=0.0,
     tyres=None,
+    turn=None,
 ):
     imu_ok = core_ok if imu_ok is None else imu_ok
     inputs = inp.OUTPUTS.vector({"core_ok": core_ok, "imu_ok": imu_ok, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
     speed = spd.OUTPUTS.vector(u=20.0, known=known)
     attitude = att.OUTPUTS.vector({"ok": 1.0, "roll_sd": roll_sd, "rejected_run": rejected}, strict=False)
-    cond = cnd.OUTPUTS.vector({"run": run, "reasons": reasons}, strict=False)
+    cond = cnd.OUTPUTS.vector({"run": run, "reasons": reasons, **(turn or {})}, strict=False)
     diag = dia.OUTPUTS.vector({}, strict=False)
     # the tyre bank: by default wide (nothing learned), or the given outputs
     lateral = lat.OUTPUTS.vector(
-        {"run_time": run_time, "diverged": diverged, "tyre_log_sd": 0.3, "tyre_nis": 5.0, **(tyres or {})},
+        {
+            "run_time": run_time,
+            "diverged": diverged,
+            "tyre_log_sd": 0.3,
+            "tyre_nis": 5.0,
+            "tyre_operating_scale": 1.0,
+            **(tyres or {}),
+        },
         strict=False,
     )
-    stiffness = stf.OUTPUTS.vector({}, strict=False)
-    sup.supervisor_stage(b.state, b.params, b.outputs, inputs, speed, attitude, cond, diag, lateral, stiffness)
+    sup.supervisor_stage(b.state, b.params, b.outputs, inputs, speed, attitude, cond, diag, lateral)
     return int(b.outputs[sup.OUT_MODE]), int(b.outputs[sup.OUT_REASONS]), int(b.outputs[sup.OUT_VALID])
 
 
@@ -109,3 +115,60 @@ def test_tyre_validity_from_the_bank(settings, design):
         wide = _step(b2, tyres={**good, "tyre_log_sd": 0.2})[2]
         misfit = _step(b2, tyres={**good, "tyre_nis": 20.0})[2]
         assert not (wide | misfit) & bits
+
+
+def _steady_turn(b, speed: float, lat_accel: float, steer_offset: float = 0.0, yaw_gyro_scale: float = 1.0) -> dict:
+    """The conditioned signals of a steady turn on the file's tyres: yaw rate a_y / u, the balanced lean, and
+    the steer angle the kinematics and the tyres' slip need (`tyre_slip_angles`), plus an encoder offset."""
+    r = lat_accel / speed
+    roll = math.atan(lat_accel / 9.81)
+    cos_caster = b.params[sup.P_COS_CASTER]
+    steer = b.params[sup.P_WHEELBASE] * r * math.cos(roll) / (speed * cos_caster)
+    for _ in range(5):  # the front camber depends on the steer angle a little
+        alpha_f, alpha_r = sup.tyre_slip_angles(b.params, steer, roll, lat_accel, 0.0, 1.0)
+        steer = b.params[sup.P_WHEELBASE] * r * math.cos(roll) / (speed * cos_caster) + (alpha_f - alpha_r) / cos_caster
+    return {"steer": steer + steer_offset, "yaw_rate": r * yaw_gyro_scale, "roll": roll, "a_y": lat_accel}
+
+
+@pytest.mark.parametrize(("speed", "lat_accel"), [(6.0, 3.0), (15.0, 4.0), (30.0, 5.0)])
+def test_the_steer_angle_is_checked_against_the_yaw_rate_in_a_corner(settings, design, speed, lat_accel):
+    """Deep in a steady corner the steer angle is the kinematic one plus the tyres' slip difference: the check
+    is quiet on it, and a 3-count (1 deg) encoder offset, or a yaw gyro reading 20 % high in a town corner,
+    raises REASON_IMPLAUSIBLE within 0.5 s, and everything the lateral filters build on the steer angle loses
+    VALID (the roll does not: the attitude filter does not use it)."""
+    b = sup.STAGE.alone(settings, design)
+    dt = b.params[sup.P_DT]
+    sup_speed = {"known": 1.0}
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 1.0}
+
+    def step(turn):
+        inputs = inp.OUTPUTS.vector({"core_ok": 1.0, "imu_ok": 1.0, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
+        speed_out = spd.OUTPUTS.vector(u=speed, **sup_speed)
+        attitude = att.OUTPUTS.vector({"ok": 1.0, "roll_sd": 0.001}, strict=False)
+        cond = cnd.OUTPUTS.vector({"run": 1.0, **turn}, strict=False)
+        diag = dia.OUTPUTS.vector({}, strict=False)
+        lateral = lat.OUTPUTS.vector({"run_time": 10.0, "tyre_operating_scale": 1.0, **good}, strict=False)
+        sup.supervisor_stage(b.state, b.params, b.outputs, inputs, speed_out, attitude, cond, diag, lateral)
+        return int(b.outputs[sup.OUT_REASONS]), int(b.outputs[sup.OUT_VALID])
+
+    for _ in range(int(3.0 / dt)):
+        reasons, valid = step(_steady_turn(b, speed, lat_accel))
+        assert reasons == 0
+    assert valid & lay.V_STEER and valid & lay.V_RIDER_TORQUE and valid & lay.V_CORNERING
+    assert abs(b.outputs[sup.OUT_STEER_RESIDUAL]) < math.radians(0.05)
+    faults = [{"steer_offset": math.radians(360.0 / 1024.0 * 3)}, {"steer_offset": -math.radians(360.0 / 1024.0 * 3)}]
+    if speed < 10.0:
+        faults.append({"yaw_gyro_scale": 1.2})
+    snapshot = b.state.copy()
+    for fault in faults:
+        b.state[:] = snapshot
+        flagged_after = None
+        for k in range(int(1.0 / dt)):
+            reasons, valid = step(_steady_turn(b, speed, lat_accel, **fault))
+            if reasons & lay.REASON_IMPLAUSIBLE:
+                flagged_after = (k + 1) * dt
+                break
+        assert flagged_after is not None and flagged_after <= 0.5, fault
+        for bit in (lay.V_STEER, lay.V_STEER_RATE, lay.V_RIDER_TORQUE, lay.V_LAT_VEL, lay.V_FY_FRONT, lay.V_CORNERING):
+            assert not valid & bit, (fault, bit)
+        assert valid & lay.V_ROLL

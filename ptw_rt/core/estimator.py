@@ -232,7 +232,7 @@ def packed_step(
         _state(s, si, DIAGNOSTICS), v1(t, ti, DIAGNOSTICS), o_dia, t, ti, TABLE_ROW0[DIAGNOSTICS], o_in, o_spd, o_cnd
     )
     lat.lateral_stage(
-        _state(s, si, LATERAL), v1(t, ti, LATERAL), o_lat, t, ti, TABLE_ROW0[LATERAL], o_in, o_spd, o_att, o_cnd, o_dia
+        _state(s, si, LATERAL), v1(t, ti, LATERAL), o_lat, t, ti, TABLE_ROW0[LATERAL], o_in, o_spd, o_att, o_cnd
     )
     stf.stiffness_stage(
         _state(s, si, STIFFNESS),
@@ -244,11 +244,10 @@ def packed_step(
         o_in,
         o_spd,
         o_cnd,
-        o_dia,
         o_lat,
     )
     sup.supervisor_stage(
-        _state(s, si, SUPERVISOR), v1(t, ti, SUPERVISOR), o_sup, o_in, o_spd, o_att, o_cnd, o_dia, o_lat, o_stf
+        _state(s, si, SUPERVISOR), v1(t, ti, SUPERVISOR), o_sup, o_in, o_spd, o_att, o_cnd, o_dia, o_lat
     )
     publish(est, o_in, o_spd, o_att, o_cnd, o_dia, o_lat, o_stf, o_sup)
 

@@ -14,8 +14,8 @@ only while the model-based observers run (conditioning's OUT_RUN); a blown-up or
 it (OUT_DIVERGED, the supervisor raises REASON_DIVERGING).
 
 The observers' convergence clock lives here (OUT_RUN_TIME: seconds since the model-based observers last
-(re)started; the supervisor's CONVERGING mode and the stiffness stage's permission to adapt use it); a UIHOSMO
-reset (diagnostics' OUT_RESET) restarts it.
+(re)started; the supervisor's CONVERGING mode and the stiffness stage's permission to adapt use it). Nothing
+the diagnostics stage does touches it: its observers are cross-checks, not inputs of these filters.
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ from numba import njit
 
 from ptw_rt.core import attitude as att
 from ptw_rt.core import conditioning as cnd
-from ptw_rt.core import diagnostics as dia
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import kalman as kf
 from ptw_rt.core import speed as spd
@@ -82,6 +81,7 @@ OUTPUTS = Layout(
     tyre_nis=1,  # its windowed mean normalised innovation (consistency; expected kf.N_Y)
     tyre_nis_fast=1,  # ... over the short window
     tyre_learning=1,  # 1: this cycle's evidence moved the estimate
+    tyre_operating_scale=1,  # k the mixture runs on (evidence at any lean: near saturation, the secant slope)
     tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
 )
 (
@@ -95,6 +95,7 @@ OUTPUTS = Layout(
     OUT_TYRE_NIS,
     OUT_TYRE_NIS_FAST,
     OUT_TYRE_LEARNING,
+    OUT_TYRE_OPERATING_SCALE,
     OUT_TYRE_STIFFNESS,
 ) = OUTPUTS.offsets
 
@@ -144,7 +145,6 @@ def lateral_stage(
     speed: np.ndarray,
     attitude: np.ndarray,
     cond: np.ndarray,
-    diag: np.ndarray,
 ) -> None:
     """One cycle. ``tables``/``tindex``: a packed buffer holding TABLES in order from row ``t0``."""
     run = cond[cnd.OUT_RUN] != 0.0
@@ -152,8 +152,6 @@ def lateral_stage(
         st[ST_RUN_TIME] = 0.0
     else:
         st[ST_RUN_TIME] += prm[P_DT]
-        if diag[dia.OUT_RESET] != 0.0:
-            st[ST_RUN_TIME] = 0.0
     bank = st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)]
     bank_prm = prm[P_BANK : P_BANK + tb.PARAM_SIZE]
     bank_out = st[ST_BANK_OUT : ST_BANK_OUT + tb.OUT_SIZE]
@@ -238,6 +236,7 @@ def lateral_stage(
         bank_out[tb.OUT_MAP_SCALE] = bank_out[tb.OUT_SCALE]
         bank_out[tb.OUT_MAP_NIS] = kf.N_Y
         bank_out[tb.OUT_MAP_NIS_FAST] = kf.N_Y
+        bank_out[tb.OUT_OPERATING_SCALE] = bank_out[tb.OUT_SCALE]
     out[OUT_TYRE_SCALE] = bank_out[tb.OUT_SCALE]
     out[OUT_TYRE_LOG_SD] = bank_out[tb.OUT_LOG_SD]
     out[OUT_TYRE_MAP_SCALE] = bank_out[tb.OUT_MAP_SCALE]
@@ -245,6 +244,7 @@ def lateral_stage(
     out[OUT_TYRE_NIS] = bank_out[tb.OUT_MAP_NIS]
     out[OUT_TYRE_NIS_FAST] = bank_out[tb.OUT_MAP_NIS_FAST]
     out[OUT_TYRE_LEARNING] = bank_out[tb.OUT_LEARNING]
+    out[OUT_TYRE_OPERATING_SCALE] = bank_out[tb.OUT_OPERATING_SCALE]
     for k in range(4):
         out[OUT_TYRE_STIFFNESS + k] = bank_out[tb.OUT_SCALE] * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]

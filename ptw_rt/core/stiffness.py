@@ -21,7 +21,6 @@ from numba import njit
 
 from ptw_rt.core import adaptive as ad
 from ptw_rt.core import conditioning as cnd
-from ptw_rt.core import diagnostics as dia
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import kalman as kf
 from ptw_rt.core import lateral as lat
@@ -141,14 +140,13 @@ def stiffness_stage(
     inputs: np.ndarray,
     speed: np.ndarray,
     cond: np.ndarray,
-    diag: np.ndarray,
     lateral: np.ndarray,
 ) -> None:
     """One cycle. ``tables``/``tindex``: a packed buffer holding TABLES in order from row ``t0``."""
     dt = prm[P_DT]
     run = cond[cnd.OUT_RUN] != 0.0
     ad_state = st[ST_AD : ST_AD + ad.STATE_SIZE]
-    if not run or diag[dia.OUT_RESET] != 0.0:
+    if not run:
         ad_state[ad.INIT] = 0.0
     ad_C = v2(tables, tindex, t0 + T_C)
     theta_nominal = v1(tables, tindex, t0 + T_THETA_NOMINAL)
