@@ -105,3 +105,27 @@ def test_the_steer_kinematics_check_is_quiet_in_a_long_corner_with_a_heavy_rider
     before = ev.t < (ev.result["crashed_at"] or np.inf) - 1.0
     assert not flagged[before].any()
     assert np.degrees(np.abs(ev.estimates[ev.mask & before, L.E_STEER_RESIDUAL]).max()) < 0.35
+
+
+@pytest.mark.slow
+def test_corrupt_frames_are_the_input_checks_business_not_the_torque_monitors():
+    """`sensor_faults` seed 11: corrupt IMU_Accel frames at 40 s carry a lateral acceleration of -27 m/s^2 for a
+    few cycles (flagged out of range). Both torques chase it; the torque monitor compared them anyway and raised
+    110 cycles of REASON_IMPLAUSIBLE on a healthy sensor set (hidden before by seed 000's case 2 blowing up and
+    restarting the filters' clock). It now compares only on sound cycles, like the steer check."""
+    ev = evaluate_ride(simulate("sensor_faults", seed=11))
+    assert ev.result["alarms"]["plausibility"]["cycles"] == 0
+
+
+@pytest.mark.slow
+def test_a_ride_the_simulated_rider_crashes_is_scored_until_just_before_the_fall():
+    """`radius_accel` with tyres x0.7 on seed 7: the rider falls at 30 deg of lean (|roll| > 69 deg at 38.2 s). The
+    fall and what follows are not a ride: scoring and the alarm count stop CRASH_MARGIN_S before it."""
+    from ptw_rt.eval.evaluate import CRASH_MARGIN_S
+
+    ev = evaluate_ride(simulate("radius_accel", seed=7, perturbation=parse_perturbations(["stiffness=0.7"])))
+    crash = ev.result["crashed_at"]
+    assert crash is not None
+    assert not ev.mask[ev.t >= crash - CRASH_MARGIN_S].any() and ev.mask[ev.t < crash - CRASH_MARGIN_S].any()
+    assert ev.result["alarms"]["plausibility"]["cycles"] == 0
+    assert ev.result["metrics"]["roll_rmse_deg"] < 1.0

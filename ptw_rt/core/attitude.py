@@ -64,7 +64,8 @@ N_DYNAMIC_STATES = (X_PHI, X_PSI, X_VY, X_AV)  # reset on a restart; the biases 
 # ---- state buffer layout ----
 # inputs of the previous cycle (processed one cycle late), at ST_PREV + PREV_*
 PREV_P, PREV_Q, PREV_R, PREV_FY, PREV_U, PREV_U_VAR, PREV_OK, PREV_P2, PREV_RG, PREV_RG2, PREV_RATES_OK = range(11)
-N_PREV = 11
+PREV_RATES_OK2 = 11  # the rates of the cycle before the previous one were measured (PREV_P2's, PREV_RG2's)
+N_PREV = 12
 MAX_LATENCY_CYCLES = 32
 STATE = Layout(
     "ST_",
@@ -459,7 +460,11 @@ def attitude_step(
     else:
         phidd1 = 0.0
         rgd1 = 0.0
-    if prev[PREV_OK] != 0.0:
+    # the accelerometer's constraints need the previous cycle's rates: the turn's u r, the rotation axis, the
+    # lever-arm terms; held ones (a frozen or corrupt IMU_Rates frame) would pin the roll to the lean of the moment
+    # they froze (`sensor_faults`, seed 3: 4.8 deg off after a 0.5 s freeze in a corner, seed 7 1.8 deg; the held
+    # roll rate integrated alone stayed within 0.3 deg), so a held cycle predicts only
+    if prev[PREV_OK] != 0.0 and prev[PREV_RATES_OK] != 0.0:
         a_y = x[X_AV] + u1 * rg1 + prm[A_IMU_FORWARD] * rgd1 - h * rg1 * rg1 * s + h * (c * phidd1 - s * phid1 * phid1)
         a_z = h * (s * phidd1 + c * phid1 * phid1)
         predicted = a_y * c + (a_z - g) * s + x[X_BAY]
@@ -471,7 +476,9 @@ def attitude_step(
         H[X_BAY] = 1.0
         H[X_AV] = c
         variance = prm[A_R_LATERAL] ** 2 + prev[PREV_U_VAR] * rg1 * rg1
-        if prev[PREV_RATES_OK] == 0.0 or not rates_ok:  # lever-arm derivatives from held rates: unknown
+        # lever-arm derivatives (central differences over this cycle and the one before the previous) from a held
+        # rate: unknown
+        if prev[PREV_RATES_OK2] == 0.0 or not rates_ok:
             variance += (h * UNMEASURED_RATE_SD / dt) ** 2 * 0.01
         accepted = _update(st, H, prev[PREV_FY] - predicted, variance, gate)
         nu_lateral = st[ST_NU]
@@ -615,6 +622,7 @@ def attitude_step(
     prev[PREV_U] = u
     prev[PREV_U_VAR] = u_sd * u_sd
     prev[PREV_OK] = 1.0 if accel_ok else 0.0
+    prev[PREV_RATES_OK2] = prev[PREV_RATES_OK]
     prev[PREV_RATES_OK] = 1.0 if rates_ok else 0.0
 
     out[OUT_ROLL] = phi

@@ -111,8 +111,8 @@ RESIDUAL_CLIP = 2.0  # thresholds: bound of one cycle's torque difference in the
 STEER_WINDOW = 0.3  # s
 STEER_RESIDUAL = math.radians(0.5)  # rad
 STEER_SLIP_SHARE = 0.3
-# input faults that make this cycle's steer or yaw rate a held or doubtful value: not compared
-_STEER_INPUT_FAULTS = REASON_STALE | REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
+# input faults that make this cycle's steer, yaw rate or a_y a held or doubtful value: neither check compares
+_INPUT_FAULTS = REASON_STALE | REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
 
 PARAMS = Layout(
     "P_",
@@ -265,7 +265,9 @@ def _plausibility(
     # both channels' torque comes from a linear-tyre model: while no tyre filter explains the data (a slide near
     # the grip limit) their disagreement says nothing about the sensors, so the window holds what it had
     model_holds = lateral[lat.OUT_TYRE_NIS_FAST] <= prm[P_MODEL_MAX_NIS_FAST]
-    compare = running and model_holds
+    # nor on a cycle whose inputs are held or doubtful (the input checks have flagged them already)
+    sound = int(cond[cnd.OUT_REASONS]) & _INPUT_FAULTS == 0
+    compare = running and model_holds and sound
     band = 0
     for k in range(1, int(prm[P_BAND_COUNT])):
         if u >= prm[P_BAND_START + k]:
@@ -319,7 +321,7 @@ def _steer_kinematics(
     if cond[cnd.OUT_RUN] == 0.0:
         st[ST_STEER_RESIDUAL] = 0.0
         st[ST_STEER_SLIP] = 0.0
-    elif inputs[inp.OUT_ACCEL_OK] != 0.0 and int(cond[cnd.OUT_REASONS]) & _STEER_INPUT_FAULTS == 0:
+    elif inputs[inp.OUT_ACCEL_OK] != 0.0 and int(cond[cnd.OUT_REASONS]) & _INPUT_FAULTS == 0:
         steer = cond[cnd.OUT_STEER]
         roll = cond[cnd.OUT_ROLL]
         kinematic = prm[P_WHEELBASE] * cond[cnd.OUT_YAW_RATE] * math.cos(roll) / (u * prm[P_COS_CASTER])

@@ -31,6 +31,10 @@ from ptw_rt.sim.ride import Ride, parse_perturbations, simulate
 from ptw_rt.sim.scenarios import SCENARIOS
 
 SETTLE_S = 5.0  # s: observers start, converge (2 s) and the fusion filter forgets its start (2 s)
+# s before the simulated rider's crash (|roll| > 69 deg) where scoring stops: the fall from a deep lean takes
+# 0.2-0.5 s, and a falling vehicle is not a ride the estimator is meant for (its figures and alarms there would
+# be about the fall; other seeds' matrices have such rides)
+CRASH_MARGIN_S = 1.0
 TRANSIENT_SCENARIOS = ("dlc_50", "dlc_100", "slalom_30")
 # the monitors a sensor fault the input checks cannot see should raise (issue #16), by their reason bits
 MONITORS = (("plausibility", L.REASON_IMPLAUSIBLE), ("attitude_consistency", L.REASON_ATTITUDE_INCONSISTENT))
@@ -39,13 +43,15 @@ MONITORS = (("plausibility", L.REASON_IMPLAUSIBLE), ("attitude_consistency", L.R
 def monitor_alarms(t: np.ndarray, reasons: np.ndarray, ride: Ride) -> dict:
     """Each monitor's alarms on the ride: cycles raised, and, where the perturbation injects a fault (yaw-gyro
     scale, roll-gyro bias step, steer-encoder step), the time from the fault to its first alarm (None: none
-    before the ride ends). On a healthy ride every alarm is a false one."""
+    before the ride ends). On a healthy ride every alarm is a false one; a ride the simulated rider crashes
+    counts until CRASH_MARGIN_S before the crash."""
     p = ride.perturbation
     injected = p.yaw_gyro_scale != 1.0 or p.roll_gyro_bias_step != 0.0 or p.steer_offset_step != 0.0
     bits = reasons.astype(np.int64)
+    riding = t < ride.crashed_at - CRASH_MARGIN_S if ride.crashed_at is not None else np.ones(t.shape, bool)
     out: dict = {"fault_at_s": p.fault_at if injected else None}
     for name, bit in MONITORS:
-        raised = (bits & bit) != 0
+        raised = ((bits & bit) != 0) & riding
         entry: dict = {"cycles": int(np.count_nonzero(raised))}
         if injected:
             hit = np.flatnonzero(raised & (t >= p.fault_at))
@@ -162,6 +168,8 @@ def evaluate_ride(
     truth = {k: np.interp(t, ride.truth["t"], v) for k, v in ride.truth.items() if k != "t"}
     min_speed = settings.estimator.min_valid_speed_kmh / 3.6
     mask = (t >= SETTLE_S) & (truth["speed"] >= min_speed)
+    if ride.crashed_at is not None:
+        mask &= t < ride.crashed_at - CRASH_MARGIN_S
     dt = runner.sample_time
     g = settings.vehicle.g
 
