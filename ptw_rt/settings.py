@@ -65,7 +65,7 @@ PLAUSIBILITY_SCHEMA = Section(
     optional={
         "window": (Number("s", gt=0.05, le=30), 1.0),
         "band_start_kmh": (NumberList(Number("km/h", ge=0), min_len=1, max_len=8), (0.0, 30.0, 60.0, 90.0)),
-        "torque_residual_nm": (NumberList(Number("N m", gt=0), min_len=1, max_len=8), (4.4, 4.8, 4.7, 8.2)),
+        "torque_residual_nm": (NumberList(Number("N m", gt=0), min_len=1, max_len=8), (4.6, 4.8, 6.2, 8.2)),
         "hold": (Number("s", ge=0, le=60), 1.0),
     },
 )
