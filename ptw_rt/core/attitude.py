@@ -462,8 +462,8 @@ def attitude_step(
         rgd1 = 0.0
     # the accelerometer's constraints need the previous cycle's rates: the turn's u r, the rotation axis, the
     # lever-arm terms; held ones (a frozen or corrupt IMU_Rates frame) would pin the roll to the lean of the moment
-    # they froze (`sensor_faults`, seed 3: 4.8 deg off after a 0.5 s freeze in a corner, seed 7 1.8 deg; the held
-    # roll rate integrated alone stayed within 0.3 deg), so a held cycle predicts only
+    # they froze (`sensor_faults` seeds 3 / 7: 4.8 / 5.8 deg off around a 0.5 s freeze in a corner; integrating the
+    # held roll rate alone, at most 0.9 / 1.4 deg), so a held cycle predicts only
     if prev[PREV_OK] != 0.0 and prev[PREV_RATES_OK] != 0.0:
         a_y = x[X_AV] + u1 * rg1 + prm[A_IMU_FORWARD] * rgd1 - h * rg1 * rg1 * s + h * (c * phidd1 - s * phid1 * phid1)
         a_z = h * (s * phidd1 + c * phid1 * phid1)

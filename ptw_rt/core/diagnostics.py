@@ -7,9 +7,10 @@ mostly quantisation, docs/estimator.md) and the super-twisting observer's tyre f
 
 Both run only while the model-based observers run (conditioning's OUT_RUN; the force observer also needs the
 accelerometer). A UIHOSMO that blows up (non-finite, or roll or torque beyond the limits) is reset and the
-event is an output (OUT_RESET): the supervisor raises REASON_DIVERGING, and the lateral stage restarts the
-observers' convergence clock and the stiffness stage its adaptive observer (the monolithic step did so;
-kept, bit for bit).
+event is an output (OUT_RESET, diagnostic only). Nothing published depends on these observers, so their reset
+touches nothing else: until 2026-11-25 it raised REASON_DIVERGING and restarted the fusion filters' clock and
+the adaptive observer (carried over from the monolithic step), which kept a ride DEGRADED for 25 s after a
+steer-encoder offset (docs/estimator.md, "Plausibility").
 """
 
 from __future__ import annotations

@@ -251,13 +251,21 @@ def _held_reasons(st: np.ndarray) -> int:
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _plausibility(
-    st: np.ndarray, prm: np.ndarray, out: np.ndarray, cond: np.ndarray, diag: np.ndarray, lateral: np.ndarray, u: float
+    st: np.ndarray,
+    prm: np.ndarray,
+    out: np.ndarray,
+    cond: np.ndarray,
+    diag: np.ndarray,
+    lateral: np.ndarray,
+    u: float,
+    sound: bool,
 ) -> bool:
     """The plausibility monitor (docs/estimator.md, "Plausibility"): is the published rider torque (the tyre
     bank's fusion filters) contradicted by the UIHOSMO on the sensors (model inversion through steer'' with
     finite-time differentiators: a structurally different path)? The windowed RMS of their difference against
     the threshold of the speed band, learned from the evaluation matrix's healthy rides; the alarm is held
-    `plausibility_hold` after the residual is back. Compared only while both run and have settled."""
+    `plausibility_hold` after the residual is back. Compared only while both run and have settled, on ``sound``
+    inputs (none the input checks flagged this cycle) and while some tyre filter explains the data."""
     us = diag[dia.OUT_US : dia.OUT_US + cus.OUT_SIZE]
     running = (
         cond[cnd.OUT_RUN] != 0.0 and lateral[lat.OUT_RUN_TIME] >= prm[P_CONVERGE_TIME] and us[cus.OUT_VALID] != 0.0
@@ -265,8 +273,6 @@ def _plausibility(
     # both channels' torque comes from a linear-tyre model: while no tyre filter explains the data (a slide near
     # the grip limit) their disagreement says nothing about the sensors, so the window holds what it had
     model_holds = lateral[lat.OUT_TYRE_NIS_FAST] <= prm[P_MODEL_MAX_NIS_FAST]
-    # nor on a cycle whose inputs are held or doubtful (the input checks have flagged them already)
-    sound = int(cond[cnd.OUT_REASONS]) & _INPUT_FAULTS == 0
     compare = running and model_holds and sound
     band = 0
     for k in range(1, int(prm[P_BAND_COUNT])):
@@ -300,28 +306,29 @@ def tyre_slip_angles(
     (m a_y shared by the wheelbase, plus I_z r' / L), less what camber gives, with the learned scale on the
     file's stiffness. Sharp's tyre rows in steady state: F_f = C_af alpha_f + C_gf (roll + sin(caster) steer),
     F_r = C_ar alpha_r + C_gr roll; the relaxation lag (sigma / u, 10-50 ms) is left to the running mean."""
-    c = prm[P_STIFFNESS : P_STIFFNESS + 4]
+    # indexed, not sliced: a view costs atomic reference counting (ptw_rt.core.stage, "Reference counting")
+    c = P_STIFFNESS
     front = prm[P_MASS] * lat_accel * prm[P_FRONT_SHARE] + prm[P_YAW_INERTIA_PER_WHEELBASE] * yaw_accel
     rear = prm[P_MASS] * lat_accel - front
-    alpha_f = (front - c[1] * (roll + prm[P_SIN_CASTER] * steer)) / (tyre_scale * c[0])
-    alpha_r = (rear - c[3] * roll) / (tyre_scale * c[2])
+    alpha_f = (front - prm[c + 1] * (roll + prm[P_SIN_CASTER] * steer)) / (tyre_scale * prm[c])
+    alpha_r = (rear - prm[c + 3] * roll) / (tyre_scale * prm[c + 2])
     return alpha_f, alpha_r
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _steer_kinematics(
-    st: np.ndarray, prm: np.ndarray, inputs: np.ndarray, cond: np.ndarray, lateral: np.ndarray, u: float
+    st: np.ndarray, prm: np.ndarray, inputs: np.ndarray, cond: np.ndarray, lateral: np.ndarray, u: float, sound: bool
 ) -> bool:
     """Is the steer angle contradicted by the yaw rate (module docstring)? With Sharp's slip angles, the front
     wheel's lateral velocity against the rear's gives cos(caster) steer = L r / u + alpha_f - alpha_r (v_y
     cancels; the trail's steer-rate term, t steer' / u, averages out of the running mean): the steer angle is
-    L r cos(roll) / (u cos(caster)) plus the slip difference (`tyre_slip_difference`). Compared while the
-    observers run, on sound inputs with the accelerometer; the running means are held otherwise, reset when the
+    L r cos(roll) / (u cos(caster)) plus the slip difference (`tyre_slip_angles`). Compared while the
+    observers run, on ``sound`` inputs with the accelerometer; the running means are held otherwise, reset when the
     observers stop. The alarm holds ``plausibility_hold`` after the mean is back."""
     if cond[cnd.OUT_RUN] == 0.0:
         st[ST_STEER_RESIDUAL] = 0.0
         st[ST_STEER_SLIP] = 0.0
-    elif inputs[inp.OUT_ACCEL_OK] != 0.0 and int(cond[cnd.OUT_REASONS]) & _INPUT_FAULTS == 0:
+    elif sound and inputs[inp.OUT_ACCEL_OK] != 0.0:
         steer = cond[cnd.OUT_STEER]
         roll = cond[cnd.OUT_ROLL]
         kinematic = prm[P_WHEELBASE] * cond[cnd.OUT_YAW_RATE] * math.cos(roll) / (u * prm[P_COS_CASTER])
@@ -358,8 +365,10 @@ def supervisor_stage(
     _raise(st, (reasons_now | REASON_DIVERGING) if diverged else reasons_now, prm[P_REASON_HOLD])
     if attitude[att.OUT_INCONSISTENT] != 0.0:  # held by the attitude stage's own monitor
         reasons_now |= REASON_ATTITUDE_INCONSISTENT
-    implausible = _plausibility(st, prm, out, cond, diag, lateral, speed[spd.OUT_U])
-    steer_implausible = _steer_kinematics(st, prm, inputs, cond, lateral, speed[spd.OUT_U])
+    # no input the checks flagged this cycle (held or doubtful steer, rates or a_y): neither monitor compares
+    sound = reasons_now & _INPUT_FAULTS == 0
+    implausible = _plausibility(st, prm, out, cond, diag, lateral, speed[spd.OUT_U], sound)
+    steer_implausible = _steer_kinematics(st, prm, inputs, cond, lateral, speed[spd.OUT_U], sound)
     out[OUT_STEER_RESIDUAL] = st[ST_STEER_RESIDUAL]
     if implausible or steer_implausible:
         reasons_now |= REASON_IMPLAUSIBLE

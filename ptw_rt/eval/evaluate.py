@@ -40,6 +40,13 @@ TRANSIENT_SCENARIOS = ("dlc_50", "dlc_100", "slalom_30")
 MONITORS = (("plausibility", L.REASON_IMPLAUSIBLE), ("attitude_consistency", L.REASON_ATTITUDE_INCONSISTENT))
 
 
+def before_crash(t: np.ndarray, ride: Ride) -> np.ndarray:
+    """The cycles that are still a ride: all of them, or those CRASH_MARGIN_S before the simulated rider's crash."""
+    if ride.crashed_at is None:
+        return np.ones(t.shape, bool)
+    return t < ride.crashed_at - CRASH_MARGIN_S
+
+
 def monitor_alarms(t: np.ndarray, reasons: np.ndarray, ride: Ride) -> dict:
     """Each monitor's alarms on the ride: cycles raised, and, where the perturbation injects a fault (yaw-gyro
     scale, roll-gyro bias step, steer-encoder step), the time from the fault to its first alarm (None: none
@@ -48,7 +55,7 @@ def monitor_alarms(t: np.ndarray, reasons: np.ndarray, ride: Ride) -> dict:
     p = ride.perturbation
     injected = p.yaw_gyro_scale != 1.0 or p.roll_gyro_bias_step != 0.0 or p.steer_offset_step != 0.0
     bits = reasons.astype(np.int64)
-    riding = t < ride.crashed_at - CRASH_MARGIN_S if ride.crashed_at is not None else np.ones(t.shape, bool)
+    riding = before_crash(t, ride)
     out: dict = {"fault_at_s": p.fault_at if injected else None}
     for name, bit in MONITORS:
         raised = ((bits & bit) != 0) & riding
@@ -167,9 +174,7 @@ def evaluate_ride(
     E = np.vstack(rows)
     truth = {k: np.interp(t, ride.truth["t"], v) for k, v in ride.truth.items() if k != "t"}
     min_speed = settings.estimator.min_valid_speed_kmh / 3.6
-    mask = (t >= SETTLE_S) & (truth["speed"] >= min_speed)
-    if ride.crashed_at is not None:
-        mask &= t < ride.crashed_at - CRASH_MARGIN_S
+    mask = (t >= SETTLE_S) & (truth["speed"] >= min_speed) & before_crash(t, ride)
     dt = runner.sample_time
     g = settings.vehicle.g
 
