@@ -194,6 +194,11 @@ SENSORS_SCHEMA = Section(
         "gyro_calibration_speed": (Number("m/s", ge=0, le=2), 0.3),
         "gyro_calibration_time_constant": (Number("s", gt=0), 5.0),
         "gyro_calibration_max_rate": (Number("rad/s", gt=0), 0.05),
+        # steer-encoder zero learned riding straight (docs/estimator.md, "Steer zero"): its time constant in
+        # seconds of straight riding, and how far from steer_zero_count it may move (a slipped encoder,
+        # beyond, stays a fault for the steer check)
+        "steer_zero_time_constant": (Number("s", gt=0, le=3600), 10.0),
+        "steer_zero_max_shift": (Number("count", ge=0, le=5), 1.25),
     },
 )
 
@@ -443,6 +448,8 @@ class SensorSettings:
     gyro_calibration_speed: float  # m/s: below it the gyros read their bias
     gyro_calibration_time_constant: float  # s
     gyro_calibration_max_rate: float  # rad/s
+    steer_zero_time_constant: float  # s of straight riding
+    steer_zero_max_shift: float  # counts
 
 
 @dataclass(frozen=True)

@@ -129,3 +129,20 @@ def test_a_ride_the_simulated_rider_crashes_is_scored_until_just_before_the_fall
     assert not ev.mask[ev.t >= crash - CRASH_MARGIN_S].any() and ev.mask[ev.t < crash - CRASH_MARGIN_S].any()
     assert ev.result["alarms"]["plausibility"]["cycles"] == 0
     assert ev.result["metrics"]["roll_rmse_deg"] < 1.0
+
+
+@pytest.mark.slow
+def test_a_steer_encoder_a_count_off_is_recalibrated_and_the_tyres_are_learned():
+    """A zero a count off (0.35 deg, below what the steer check flags) is as large as a steady corner's slip-angle
+    difference: the tyre filters' innovations said their model did not fit (windowed NIS ~14), so the stiffness
+    was never VALID on `handling_40_120` (before 2026-11-25). Riding straight the conditioning learns the zero
+    (0.9 of the second half VALID here, within 2 % of the truth)."""
+    from ptw_rt.eval.matrix import valid_stiffness_stats
+
+    ev, flagged, _ = _ride("handling_40_120", ["steer_offset=1"])
+    E, t = ev.estimates, ev.t
+    valid = (E[:, L.E_VALID].astype(int) & L.V_CORNERING) != 0
+    stats = valid_stiffness_stats(t, E[:, L.E_C_ALPHA_FRONT], ev.truth["c_alpha_front"], valid, ev.mask)
+    assert stats["valid_share_second_half"] >= 0.5
+    assert stats["max_abs_err_pct"] <= 10.0
+    assert not flagged[t > t[-1] / 2].any()

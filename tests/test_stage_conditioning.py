@@ -77,3 +77,52 @@ def test_low_speed_or_a_missing_core_sensor_stops_the_observers(settings, design
     inputs[inp.OUT_CORE_OK] = 0.0
     out = _step(b, inputs, spd.OUTPUTS.vector(u=20.0, known=1.0), attitude)
     assert out[cnd.OUT_SPEED_LOW] == 0.0 and out[cnd.OUT_RUN] == 0.0
+
+
+COUNT = 2 * math.pi / 1024
+
+
+def _learn(b, steer, r=0.0, f_y=0.0, u=20.0, reasons=0, seconds=50.0):
+    attitude = att.OUTPUTS.vector({"ok": 1.0, "yaw_rate": r}, strict=False)
+    speed = spd.OUTPUTS.vector(u=u, known=1.0)
+    inputs = _inputs(r=r, f_y=f_y, steer=steer, reasons=reasons)
+    inputs[inp.OUT_ACCEL_OK] = 1.0
+    cycles = int(seconds / b.params[cnd.P_DT])
+    for _ in range(cycles):
+        out = _step(b, inputs, speed, attitude)
+    return out
+
+
+@pytest.fixture
+def learner(settings, design):
+    assert settings.sensors.steer_zero_time_constant == 10.0  # _learn's 50 s: five time constants
+    return cnd.STAGE.alone(settings, design)
+
+
+def test_the_steer_zero_is_learned_riding_straight(learner):
+    """A calibration a count off (the encoder reads 513 straight ahead): riding straight the steer angle is the
+    kinematic L r / (u cos caster) ~ 0, so after five time constants the learned zero error is the count and the
+    published steer angle is straight ahead again."""
+    out = _learn(learner, steer=513.0)
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == pytest.approx(COUNT, rel=0.01)
+    assert out[cnd.OUT_STEER] == pytest.approx(0.0, abs=0.01 * COUNT)
+    # a restart of the estimator keeps the calibration
+    cnd.STAGE.reset_state(learner.state)
+    assert learner.state[cnd.ST_STEER_ZERO_SHIFT] == pytest.approx(COUNT, rel=0.01)
+
+
+def test_the_steer_zero_is_not_learned_in_a_corner_or_from_flagged_input(learner):
+    out = _learn(learner, steer=515.0, r=0.1, f_y=2.0)  # a corner: the steer angle is the corner's
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == 0.0
+    out = _learn(learner, steer=513.0, reasons=lay.REASON_OUT_OF_RANGE)
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == 0.0
+    out = _learn(learner, steer=513.0, u=3.0)  # too slow: the rider balances with the handlebar
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == 0.0
+
+
+def test_the_learned_steer_zero_is_bounded(learner, settings):
+    """An encoder that slipped by 4 counts is not re-zeroed: the shift stops at its bound and what is left stays
+    visible to the steer check."""
+    out = _learn(learner, steer=516.0, seconds=200.0)
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == pytest.approx(settings.sensors.steer_zero_max_shift * COUNT)
+    assert out[cnd.OUT_STEER] == pytest.approx((4.0 - settings.sensors.steer_zero_max_shift) * COUNT)

@@ -3,7 +3,10 @@
 Helpers (also used by the simulator's tests and the baselines):
 
 - Steering encoder counts -> steer angle, with the calibration zero and wrap-around
-  of a 10-bit absolute encoder (1024 counts per revolution).
+  of a 10-bit absolute encoder (1024 counts per revolution). The zero is refined riding straight
+  (`learn_steer_zero`): there the steer angle is the kinematic L r / (u cos caster), so what the encoder
+  reads beyond it, averaged over seconds, is its calibration error. A count off (0.35 deg) is as large as
+  the slip-angle difference of a steady corner and would read as tyres 25 % off.
 - Body-frame IMU -> model frame. The IMU leans with the chassis: with roll phi (and
   negligible pitch) the ground yaw rate is q sin(phi) + r cos(phi), and the
   horizontal lateral acceleration is f_y cos(phi) - f_z sin(phi), which needs no
@@ -30,19 +33,36 @@ from numba import njit
 from ptw_rt.core import attitude as att
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
-from ptw_rt.core.layout import REASON_SPEED_LOW, S_IMU_AGE
+from ptw_rt.core.layout import (
+    REASON_COUNTER_JUMPS,
+    REASON_DECODE_ERRORS,
+    REASON_OUT_OF_RANGE,
+    REASON_SPEED_LOW,
+    REASON_STALE,
+    S_IMU_AGE,
+)
 from ptw_rt.core.params import lever_arm_coefficients
 from ptw_rt.core.stage import Layout, Stage
 
 TWO_PI = 2.0 * math.pi
+
+# Riding straight, for the steer zero: the kinematic steer L r / u is then a few hundredths of a degree and the
+# slip angles' difference (what makes a corner's steer differ from it) is negligible. Over the matrix the running
+# mean of the residual on healthy rides stays within 0.1 count (docs/estimator.md, "Steer zero").
+STRAIGHT_YAW_RATE = 0.02  # rad/s
+STRAIGHT_LAT_ACCEL = 0.5  # m/s^2
+STEER_ZERO_MIN_SPEED = 5.0  # m/s: slower, the rider balances with the handlebar
+# inputs a cycle must not have flagged to teach the steer zero
+_INPUT_FAULTS = REASON_STALE | REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
 
 STATE = Layout(
     "ST_",
     init=1,  # 1 once the derivative filters have been started
     df=4,  # derivative filters: [r_f, r_dot_f, p_f, p_dot_f]
     roll=1,  # rad, the published roll of the last cycle
+    steer_zero_shift=1,  # rad, the learned steer-encoder zero error (subtracted from the encoder's angle)
 )
-ST_INIT, ST_DF, ST_ROLL = STATE.offsets
+ST_INIT, ST_DF, ST_ROLL, ST_STEER_ZERO_SHIFT = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -56,6 +76,10 @@ PARAMS = Layout(
     min_speed=1,  # m/s: below, the model-based observers are held in reset
     fusion_rate=1,  # 1/s: pull of the fallback roll to the kinematic roll
     max_roll=1,  # rad: a published roll beyond is a divergence
+    steer_zero_rate=1,  # share of the straight-riding residual learned per cycle (dt / time constant)
+    steer_zero_max_shift=1,  # rad: bound of the learned zero error
+    wheelbase=1,  # m
+    cos_caster=1,
 )
 (
     P_DT,
@@ -68,6 +92,10 @@ PARAMS = Layout(
     P_MIN_SPEED,
     P_FUSION_RATE,
     P_MAX_ROLL,
+    P_STEER_ZERO_RATE,
+    P_STEER_ZERO_MAX_SHIFT,
+    P_WHEELBASE,
+    P_COS_CASTER,
 ) = PARAMS.offsets
 
 OUTPUTS = Layout(
@@ -86,6 +114,7 @@ OUTPUTS = Layout(
     roll=1,  # rad: the published roll, at the cycle's time
     roll_last=1,  # rad: the published roll of the last cycle
     diverged=1,  # 1: the roll was implausible and replaced (an observer-reset event for the supervisor)
+    steer_zero_shift=1,  # rad: the learned steer-encoder zero error, already removed from `steer`
 )
 (
     OUT_DEROLL,
@@ -102,6 +131,7 @@ OUTPUTS = Layout(
     OUT_ROLL,
     OUT_ROLL_LAST,
     OUT_DIVERGED,
+    OUT_STEER_ZERO_SHIFT,
 ) = OUTPUTS.offsets
 
 
@@ -119,6 +149,10 @@ def build_params(settings, design) -> np.ndarray:
         min_speed=design.min_valid_speed,
         fusion_rate=1.0 / est.roll_fusion_time_constant,
         max_roll=est.max_roll,
+        steer_zero_rate=float(design.sample_time) / sens.steer_zero_time_constant,
+        steer_zero_max_shift=sens.steer_zero_max_shift * TWO_PI / sens.steer_counts_per_rev,
+        wheelbase=veh.l_f + veh.l_r,
+        cos_caster=math.cos(veh.caster),
     )
 
 
@@ -129,6 +163,21 @@ def steer_angle(count: float, zero_count: float, counts_per_rev: float) -> float
     if d > 0.5 * counts_per_rev:
         d -= counts_per_rev
     return d * TWO_PI / counts_per_rev
+
+
+@njit(cache=True)
+def learn_steer_zero(
+    st: np.ndarray, prm: np.ndarray, encoder_steer: float, yaw_rate: float, a_y: float, u: float
+) -> None:
+    """Riding straight (small yaw rate and lateral acceleration, some speed), move the learned zero error
+    towards the encoder's angle less the kinematic steer, by `steer_zero_rate`, within +-`steer_zero_max_shift`.
+    The caller decides the cycle's inputs are sound."""
+    if u < STEER_ZERO_MIN_SPEED or abs(yaw_rate) > STRAIGHT_YAW_RATE or abs(a_y) > STRAIGHT_LAT_ACCEL:
+        return
+    kinematic = prm[P_WHEELBASE] * yaw_rate / (u * prm[P_COS_CASTER])
+    shift = st[ST_STEER_ZERO_SHIFT] + prm[P_STEER_ZERO_RATE] * (encoder_steer - kinematic - st[ST_STEER_ZERO_SHIFT])
+    bound = prm[P_STEER_ZERO_MAX_SHIFT]
+    st[ST_STEER_ZERO_SHIFT] = min(max(shift, -bound), bound)
 
 
 @njit(cache=True)
@@ -200,6 +249,16 @@ def conditioning_stage(
 
     speed_low = speed[spd.OUT_KNOWN] == 0.0 or u < prm[P_MIN_SPEED]
     reasons = int(inputs[inp.OUT_REASONS])
+    if (
+        attitude_ok
+        and inputs[inp.OUT_CORE_OK] != 0.0
+        and inputs[inp.OUT_ACCEL_OK] != 0.0
+        and speed[spd.OUT_KNOWN] != 0.0
+        and reasons & _INPUT_FAULTS == 0
+        and math.isfinite(delta + r_ground + a_y + u)
+    ):
+        learn_steer_zero(st, prm, delta, r_ground, a_y, u)
+    delta -= st[ST_STEER_ZERO_SHIFT]
     if speed_low:
         reasons |= REASON_SPEED_LOW
     run = inputs[inp.OUT_CORE_OK] != 0.0 and not speed_low
@@ -238,6 +297,14 @@ def conditioning_stage(
     out[OUT_ROLL_KIN] = roll_kin
     out[OUT_ROLL] = roll
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
+    out[OUT_STEER_ZERO_SHIFT] = st[ST_STEER_ZERO_SHIFT]
+
+
+def restart(st: np.ndarray) -> None:
+    """Filters and the roll from the data again; the learned steer zero is a calibration and is kept."""
+    shift = st[ST_STEER_ZERO_SHIFT]
+    st[:] = 0.0
+    st[ST_STEER_ZERO_SHIFT] = shift
 
 
 STAGE = Stage(
@@ -246,5 +313,6 @@ STAGE = Stage(
     params=PARAMS,
     outputs=OUTPUTS,
     build_params=build_params,
+    reset=restart,
     doc="steer angle, roll/yaw rates and their derivatives, a_y at the CoM, observers on/off, the published roll",
 )
