@@ -624,6 +624,41 @@ def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
     assert (x[att.X_BP], x[att.X_BQ], x[att.X_BR], x[att.X_BAY]) == pytest.approx(biases)
 
 
+def test_restart_keeps_the_learned_steer_zero_unless_the_encoder_was_re_zeroed(tmp_path):
+    """The steer zero learned riding straight is saved with the tyres and the next boot starts from it; a file
+    learned against another configured zero count (the encoder re-fitted, its new zero written in the file)
+    restores the tyres and re-learns the steer zero."""
+    from ptw_rt.core import conditioning as cnd
+
+    state = tmp_path / "state.json"
+    first = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    learned = first.runner.estimator.design.ad_theta_nominal * 0.9
+    shift = 0.006  # rad, 0.98 count
+    first.runner.estimator.learned_steer_zero = lambda: (512.0, shift)  # what a ride would have taught it
+    first.on_cycle = _learns(first, learned)
+    _run(first, 0.5)
+    saved, reason = load_state(state, first.settings.config_hash)
+    assert saved is not None, reason
+    assert saved.steer_zero == pytest.approx((512.0, shift))
+
+    second = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    assert "steer zero" in second.state_note
+    assert second.runner.estimator.states["conditioning"][cnd.ST_STEER_ZERO_SHIFT] == pytest.approx(shift)
+    assert second.runner.estimator.learned_steer_zero() == pytest.approx((512.0, shift))
+
+    s = _settings(_channel(), tmp_path)
+    s = dataclasses.replace(
+        s,
+        runtime=dataclasses.replace(s.runtime, state_file=str(state)),
+        sensors=dataclasses.replace(s.sensors, steer_zero_count=514.0),
+    )
+    third = Daemon(s, DEFAULT_CONFIG)
+    assert third.state_note.startswith("restored learned tyre stiffness from")
+    assert "re-learned riding straight" in third.state_note
+    assert third.runner.estimator.states["conditioning"][cnd.ST_STEER_ZERO_SHIFT] == 0.0
+    assert third.runner.estimator.learned_steer_zero() is None
+
+
 def test_restart_cli_restores_from_the_state_file(tmp_path):
     """The README's promise end to end: ``ptw-rt run`` twice on the same state file, as systemd restarts it."""
     from ptw_rt.design.file import load_design

@@ -131,6 +131,23 @@ def test_sensor_biases_learned_at_a_stop_restore_into_a_new_estimator(estimator_
         fresh.restore_sensor_biases([0.0, float("nan"), 0.0, 0.0])
 
 
+def test_a_restored_steer_zero_is_used_and_kept(estimator_factory):
+    from ptw_rt.core import conditioning as cnd
+
+    est = estimator_factory()
+    assert est.learned_steer_zero() is None  # nothing learned riding straight yet: nothing to keep
+    count = 2 * math.pi / 1024
+    assert est.restore_steer_zero(512.0, count)
+    assert est.learned_steer_zero() == pytest.approx((512.0, count))
+    ride(est, 1.0)  # a steady turn (nothing learned): the restored zero error is subtracted and kept
+    assert est.outputs["conditioning"][cnd.OUT_STEER_ZERO_SHIFT] == pytest.approx(count, rel=0.01)
+    assert not est.restore_steer_zero(513.0, 0.0)  # learned against another zero count: not restored
+    with pytest.raises(ValueError):
+        est.restore_steer_zero(512.0, 10 * count)  # beyond what the conditioning may learn
+    with pytest.raises(ValueError):
+        est.restore_steer_zero(512.0, float("nan"))
+
+
 def test_silent_imu_is_a_fault_and_recovery_needs_no_restart(estimator_factory):
     est = estimator_factory()
     out = ride(est, 4.0)

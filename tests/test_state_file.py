@@ -209,3 +209,25 @@ def test_a_bad_sensor_bias_refuses_the_whole_file(tmp_path, bad):
     path.write_text(json.dumps(doc))
     state, reason = load_state(path, "h", sensor_bias_bounds(0.1, 0.5))
     assert state is None and "lacks sensor_biases values: yaw_gyro" in reason
+
+
+def test_the_steer_zero_round_trips_is_optional_and_bounded(tmp_path):
+    from ptw_rt.io.state_file import steer_zero_bounds
+
+    path = tmp_path / "state.json"
+    bounds = steer_zero_bounds(0.0077, 1024)
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h", steer_zero=(512.0, -0.006))
+    state, reason = load_state(path, "h", bounds)
+    assert reason == "ok" and state.steer_zero == (512.0, -0.006)
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h")  # a file of before the steer zero was kept still loads
+    state, reason = load_state(path, "h", bounds)
+    assert reason == "ok" and state.steer_zero is None
+    for key, bad in (("shift", 0.01), ("shift", "x"), ("zero_count", 2000.0), ("zero_count", None)):
+        save_state(path, [1.0, 2.0, 3.0, 4.0], "h", steer_zero=(512.0, 0.0))
+        doc = json.loads(path.read_text())
+        doc["steer_zero"][key] = bad
+        path.write_text(json.dumps(doc))
+        state, reason = load_state(path, "h", bounds)
+        assert state is None and key in reason, (key, bad, reason)
+    with pytest.raises(ValueError):
+        save_state(path, [1.0, 2.0, 3.0, 4.0], "h", steer_zero=(512.0, float("nan")))

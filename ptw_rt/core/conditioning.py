@@ -61,8 +61,9 @@ STATE = Layout(
     df=4,  # derivative filters: [r_f, r_dot_f, p_f, p_dot_f]
     roll=1,  # rad, the published roll of the last cycle
     steer_zero_shift=1,  # rad, the learned steer-encoder zero error (subtracted from the encoder's angle)
+    steer_zero_seconds=1,  # s of straight riding it was learned from (a restored value counts as learned)
 )
-ST_INIT, ST_DF, ST_ROLL, ST_STEER_ZERO_SHIFT = STATE.offsets
+ST_INIT, ST_DF, ST_ROLL, ST_STEER_ZERO_SHIFT, ST_STEER_ZERO_SECONDS = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -178,6 +179,7 @@ def learn_steer_zero(
     shift = st[ST_STEER_ZERO_SHIFT] + prm[P_STEER_ZERO_RATE] * (encoder_steer - kinematic - st[ST_STEER_ZERO_SHIFT])
     bound = prm[P_STEER_ZERO_MAX_SHIFT]
     st[ST_STEER_ZERO_SHIFT] = min(max(shift, -bound), bound)
+    st[ST_STEER_ZERO_SECONDS] += prm[P_DT]
 
 
 @njit(cache=True)
@@ -302,9 +304,10 @@ def conditioning_stage(
 
 def restart(st: np.ndarray) -> None:
     """Filters and the roll from the data again; the learned steer zero is a calibration and is kept."""
-    shift = st[ST_STEER_ZERO_SHIFT]
+    shift, seconds = st[ST_STEER_ZERO_SHIFT], st[ST_STEER_ZERO_SECONDS]
     st[:] = 0.0
     st[ST_STEER_ZERO_SHIFT] = shift
+    st[ST_STEER_ZERO_SECONDS] = seconds
 
 
 STAGE = Stage(

@@ -324,6 +324,30 @@ class Estimator:
             RESTORED_BIAS_SHARE * tuning.initial_accel_bias_sd,
         )
 
+    def learned_steer_zero(self) -> tuple[float, float] | None:
+        """(configured zero count, learned zero error [rad]) once the conditioning has learned it for a time
+        constant of straight riding (or it was restored), else None: what the state file may keep."""
+        st = self.states["conditioning"]
+        if st[cnd.ST_STEER_ZERO_SECONDS] < self.settings.sensors.steer_zero_time_constant:
+            return None
+        return float(self.settings.sensors.steer_zero_count), float(st[cnd.ST_STEER_ZERO_SHIFT])
+
+    def restore_steer_zero(self, zero_count: float, shift: float) -> bool:
+        """Start from a steer zero error learned on earlier rides, if it was learned against the zero count the
+        configuration has now (False, nothing restored, if not: the encoder was re-zeroed in the file). Raises
+        ValueError for a non-finite value or one beyond what the conditioning may learn."""
+        if not (math.isfinite(zero_count) and math.isfinite(shift)):
+            raise ValueError("expected a finite steer zero")
+        bound = self.params["conditioning"][cnd.P_STEER_ZERO_MAX_SHIFT]
+        if abs(shift) > bound * (1.0 + 1e-9):
+            raise ValueError(f"steer zero error {shift:.6g} rad beyond the learnable {bound:.6g} rad")
+        if zero_count != self.settings.sensors.steer_zero_count:
+            return False
+        st = self.states["conditioning"]
+        st[cnd.ST_STEER_ZERO_SHIFT] = shift
+        st[cnd.ST_STEER_ZERO_SECONDS] = self.settings.sensors.steer_zero_time_constant
+        return True
+
     def learned_tyre_scale(self) -> float:
         return lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])
 

@@ -27,7 +27,12 @@ File content (format ``ptw-rt-state``, version 1)::
 
 ``sensor_biases`` (the attitude filter's gyro biases in rad/s and lateral accelerometer bias in m/s^2, bounded by
 ``sensor_bias_bounds``) is optional: files written before it existed still load; when present it is checked like
-every other group and a bad value refuses the whole file.
+every other group and a bad value refuses the whole file. So is ``steer_zero``: the steering encoder's zero error
+learned riding straight (``shift``, rad, bounded by ``steer_zero_bounds``) and the configured zero count it was
+learned against (``zero_count``: the caller restores the shift only while the configuration still has that zero,
+since a re-fitted encoder is re-zeroed in the file, not by what the last ride learned)::
+
+     "steer_zero": {"zero_count": 512.0, "shift": 0.0061}
 """
 
 from __future__ import annotations
@@ -60,6 +65,7 @@ __all__ = [
     "restore_state",
     "save_state",
     "sensor_bias_bounds",
+    "steer_zero_bounds",
     "stiffness_bounds",
 ]
 
@@ -93,9 +99,16 @@ class StateField:
 # order of the ``sensor_biases`` sequence: the attitude filter's b_p, b_q, b_r [rad/s] and b_ay [m/s^2]
 SENSOR_BIAS_KEYS = ("roll_gyro", "pitch_gyro", "yaw_gyro", "lateral_accel")
 _SENSOR_BIAS_UNITS = ("rad/s", "rad/s", "rad/s", "m/s^2")
-STATE_FIELDS: tuple[StateField, ...] = tuple(StateField("stiffness", key, "N/rad") for key in STIFFNESS_KEYS) + tuple(
-    StateField("sensor_biases", key, unit, positive=False, optional=True)
-    for key, unit in zip(SENSOR_BIAS_KEYS, _SENSOR_BIAS_UNITS, strict=True)
+STATE_FIELDS: tuple[StateField, ...] = (
+    tuple(StateField("stiffness", key, "N/rad") for key in STIFFNESS_KEYS)
+    + tuple(
+        StateField("sensor_biases", key, unit, positive=False, optional=True)
+        for key, unit in zip(SENSOR_BIAS_KEYS, _SENSOR_BIAS_UNITS, strict=True)
+    )
+    + (
+        StateField("steer_zero", "zero_count", "count", positive=False, optional=True),
+        StateField("steer_zero", "shift", "rad", positive=False, optional=True),
+    )
 )
 
 Bounds = Mapping[str, tuple[float, float]]
@@ -116,6 +129,12 @@ def sensor_bias_bounds(max_gyro_bias: float, max_accel_bias: float) -> dict[str,
     return {f"sensor_biases.{key}": (-abs(b), abs(b)) for key, b in zip(SENSOR_BIAS_KEYS, limits, strict=True)}
 
 
+def steer_zero_bounds(max_shift: float, counts_per_rev: float) -> dict[str, tuple[float, float]]:
+    """Bounds of the persisted steer zero: the shift within +-``max_shift`` rad (what the conditioning may learn),
+    the zero count on the encoder."""
+    return {"steer_zero.shift": (-abs(max_shift), abs(max_shift)), "steer_zero.zero_count": (0.0, counts_per_rev)}
+
+
 @dataclass(frozen=True)
 class LoadedState:
     """A state file that passed every check. ``stiffness`` is (C_af, C_gf, C_ar, C_gr) in N/rad."""
@@ -126,6 +145,7 @@ class LoadedState:
     extra: dict[str, Any] = field(default_factory=dict)
     values: dict[str, Any] = field(default_factory=dict)  # every STATE_FIELDS value by StateField.name
     sensor_biases: tuple[float, float, float, float] | None = None  # SENSOR_BIAS_KEYS order, if the file has them
+    steer_zero: tuple[float, float] | None = None  # (zero_count, shift [rad]), if the file has them
 
 
 @dataclass(frozen=True)
@@ -181,9 +201,10 @@ def save_state(
     config_hash: str,
     extra: Mapping[str, Any] | None = None,
     sensor_biases: Sequence[float] | None = None,
+    steer_zero: tuple[float, float] | None = None,
 ) -> Path:
-    """Atomically write the learned stiffness (C_af, C_gf, C_ar, C_gr in N/rad), and the sensor biases if given
-    (SENSOR_BIAS_KEYS order), to ``path``; returns the path.
+    """Atomically write the learned stiffness (C_af, C_gf, C_ar, C_gr in N/rad), and the sensor biases
+    (SENSOR_BIAS_KEYS order) and the steer zero ((zero_count, shift [rad])) if given, to ``path``; returns the path.
 
     Creates the parent directory if missing. Raises ``ValueError`` for non-finite or non-positive values
     (nothing is written), ``TypeError`` if ``extra`` is not JSON-serialisable and ``OSError`` if the file
@@ -203,6 +224,11 @@ def save_state(
         if len(biases) != len(SENSOR_BIAS_KEYS) or not all(math.isfinite(b) for b in biases):
             raise ValueError(f"expected {len(SENSOR_BIAS_KEYS)} finite sensor biases, got {sensor_biases!r}")
         doc["sensor_biases"] = dict(zip(SENSOR_BIAS_KEYS, biases, strict=True))
+    if steer_zero is not None:
+        zero = [float(v) for v in steer_zero]
+        if len(zero) != 2 or not all(math.isfinite(v) for v in zero):
+            raise ValueError(f"expected a finite (zero_count, shift) steer zero, got {steer_zero!r}")
+        doc["steer_zero"] = {"zero_count": zero[0], "shift": zero[1]}
     if extra:
         doc["extra"] = dict(extra)
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
@@ -334,6 +360,9 @@ def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None)
         values=values,
         sensor_biases=tuple(float(values[f"sensor_biases.{k}"]) for k in SENSOR_BIAS_KEYS)  # type: ignore[arg-type]
         if "sensor_biases" in doc
+        else None,
+        steer_zero=(float(values["steer_zero.zero_count"]), float(values["steer_zero.shift"]))
+        if "steer_zero" in doc
         else None,
     )
     return state, "ok"

@@ -77,7 +77,13 @@ from ptw_rt.edge.cycle import CycleRunner, build_runner
 from ptw_rt.errors import EXIT_UNAVAILABLE, UserFacingError
 from ptw_rt.io.dbc import DbcError
 from ptw_rt.io.nmea import NmeaParser, SerialGnssReader
-from ptw_rt.io.state_file import restore_state, save_state, sensor_bias_bounds, stiffness_bounds
+from ptw_rt.io.state_file import (
+    restore_state,
+    save_state,
+    sensor_bias_bounds,
+    steer_zero_bounds,
+    stiffness_bounds,
+)
 from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
 from ptw_rt.service.logs import HealthSummary, RateLimitedLog, setup_logging
 from ptw_rt.service.realtime import apply_realtime, normal_scheduling, restore_scheduling, thread_scheduling
@@ -453,8 +459,16 @@ class Daemon:
             return
         design = self.runner.estimator.design
         tuning = self.settings.estimator.attitude
-        bounds = stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound) | sensor_bias_bounds(
-            MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * tuning.initial_accel_bias_sd
+        sensors = self.settings.sensors
+        bounds = (
+            stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound)
+            | sensor_bias_bounds(
+                MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * tuning.initial_accel_bias_sd
+            )
+            | steer_zero_bounds(
+                sensors.steer_zero_max_shift * 2.0 * math.pi / sensors.steer_counts_per_rev,
+                sensors.steer_counts_per_rev,
+            )
         )
         loaded = restore_state(path, self.settings.config_hash, bounds)
         if loaded.removed_temp_files:
@@ -464,16 +478,30 @@ class Daemon:
             self.state_note = f"starting from nominal tyre stiffness: {loaded.reason}"
             log.log(loaded.level, self.state_note)
             return
+        est = self.runner.estimator
+        steer_zero = False
         try:
-            self.runner.estimator.restore_stiffness(state.stiffness)
+            est.restore_stiffness(state.stiffness)
             if state.sensor_biases is not None:
-                self.runner.estimator.restore_sensor_biases(state.sensor_biases)
+                est.restore_sensor_biases(state.sensor_biases)
+            if state.steer_zero is not None:
+                steer_zero = est.restore_steer_zero(*state.steer_zero)
         except ValueError as exc:
             self.state_note = f"state file {path} ignored: {exc}"
             log.warning(self.state_note)
             return
-        what = "tyre stiffness and sensor biases" if state.sensor_biases is not None else "tyre stiffness"
-        self.state_note = f"restored learned {what} from {path} (saved {state.saved_at})"
+        what = ["tyre stiffness"]
+        if state.sensor_biases is not None:
+            what.append("sensor biases")
+        if steer_zero:
+            what.append("steer zero")
+        listed = what[0] if len(what) == 1 else f"{', '.join(what[:-1])} and {what[-1]}"
+        self.state_note = f"restored learned {listed} from {path} (saved {state.saved_at})"
+        if state.steer_zero is not None and not steer_zero:
+            self.state_note += (
+                f"; its steer zero was learned against count {state.steer_zero[0]:g}, the configuration now has "
+                f"{self.settings.sensors.steer_zero_count:g}: re-learned riding straight"
+            )
         log.info(self.state_note)
 
     def _stiffness_to_save(self):
@@ -482,15 +510,15 @@ class Daemon:
         if not int(self.estimates[E_VALID]) & (V_CORNERING | V_CAMBER):
             return None  # nothing learned (or restored) yet: keep the previous file
         est = self.runner.estimator
-        return [float(v) for v in est.learned_stiffness()], est.learned_sensor_biases()
+        return [float(v) for v in est.learned_stiffness()], est.learned_sensor_biases(), est.learned_steer_zero()
 
     def _save_state(self, values, now: float) -> None:
         path = self.settings.runtime.state_file
         if not path or values is None:
             return
-        stiffness, biases = values
+        stiffness, biases, steer_zero = values
         try:
-            save_state(path, stiffness, self.settings.config_hash, sensor_biases=biases)
+            save_state(path, stiffness, self.settings.config_hash, sensor_biases=biases, steer_zero=steer_zero)
             self.state_saves += 1
         except (OSError, ValueError, TypeError) as exc:
             self.rate_log.warn("state_save", f"cannot save state to {path}: {exc}", now)
