@@ -92,7 +92,13 @@ TYRE_BANK_SCHEMA = Section(
         "valid_max_nis_fast": (Number("", gt=0), 12.0),
         "alarm_hold": (Number("s", ge=0), 2.0),
         "settle_time": (Number("s", ge=0), 2.0),
+        "valid_min_evidence": (Number("s", ge=0), 2.0),
         "min_learning_speed": (Number("m/s", gt=0), 8.0),
+        # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
+        # kinematic steer the slip angles are measured against; learning waits while that could move k by more
+        # than this share (1 sd), judged over `bias_window` of a_y (docs/estimator.md, "Tyres")
+        "max_learning_bias_share": (Number("", gt=0, le=1), 0.1),
+        "bias_window": (Number("s", gt=0, le=60), 5.0),
         "excitation_window": (Number("s", gt=0), 2.0),
         "min_excitation_lateral_accel": (Number("m/s^2", gt=0), 0.8),
         "min_excitation_yaw_rate": (Number("rad/s", gt=0), 0.04),
@@ -335,6 +341,9 @@ class TyreBankTuning:
     alarm_hold: float
     settle_time: float
     min_learning_speed: float
+    max_learning_bias_share: float
+    valid_min_evidence: float
+    bias_window: float
     excitation_window: float
     min_excitation_lateral_accel: float
     min_excitation_yaw_rate: float

@@ -57,3 +57,18 @@ def test_a_wrong_start_converges_on_the_nonlinear_plant(start):
     assert ev.result["initial_stiffness_scale"]["applied"]
     for name, times in learning_times(ev, 0.0).items():
         assert times["cornering_s"] is not None and times["cornering_s"] <= 30.0, (name, times)
+
+
+@pytest.mark.slow
+def test_an_imu_with_larger_biases_does_not_make_a_wrong_tyre_valid():
+    """IMU biases 2.5 x the simulator's default spread (yaw gyro -0.015 rad/s on this draw): learning from the
+    first seconds of `mu_drop`'s corner, before the attitude filter knew the yaw gyro's bias, published x1.75 for
+    a road of x0.9, VALID (94 % off, before 2026-11-25). Now the bank waits until the bias can no longer move k
+    by 10 %, and the posterior must rest on 2 s of learning."""
+    from ptw_rt.eval.matrix import valid_stiffness_stats
+
+    ev = evaluate_ride(simulate("mu_drop", perturbation=parse_perturbations(["imu_bias=2.5"])))
+    E = ev.estimates
+    valid = (E[:, L.E_VALID].astype(int) & L.V_CORNERING) != 0
+    stats = valid_stiffness_stats(ev.t, E[:, L.E_C_ALPHA_FRONT], ev.truth["c_alpha_front"], valid, ev.mask)
+    assert stats["max_abs_err_pct"] is None or stats["max_abs_err_pct"] <= 20.0

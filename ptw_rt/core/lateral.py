@@ -20,6 +20,8 @@ the diagnostics stage does touches it: its observers are cross-checks, not input
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -37,11 +39,13 @@ STATE = Layout(
     "ST_",
     bank=tb.state_size(MAX_HYPOTHESES),  # the tyre bank (ptw_rt.core.tyre_bank layout, for its H)
     run_time=1,  # s since the model-based observers last (re)started
+    ay_mean=1,  # m/s^2: running mean of a_y (`bias_window`): what a constant steer error biases the slip by
+    ay_square=1,  # m^2/s^4: running mean of a_y^2: the slip signal the tyres are learned from
     y=kf.N_Y,  # scratch: this cycle's measurements
     scratch=tb.SCRATCH_SIZE,  # the bank's scratch
     bank_out=tb.OUT_SIZE,  # the bank's outputs
 )
-ST_BANK, ST_RUN_TIME, ST_Y, ST_SCRATCH, ST_BANK_OUT = STATE.offsets
+ST_BANK, ST_RUN_TIME, ST_AY_MEAN, ST_AY_SQUARE, ST_Y, ST_SCRATCH, ST_BANK_OUT = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -51,6 +55,10 @@ PARAMS = Layout(
     converge_time=1,  # s after a (re)start before the filters' innovations are evidence
     max_learning_roll=1,  # rad: beyond, the tyres leave their linear range: no learning
     min_learning_speed=1,  # m/s
+    max_learning_bias_share=1,  # no learning while the yaw rate's bias uncertainty may move k by more than this
+    steer_per_yaw=1,  # m: wheelbase / cos(caster), the kinematic steer per (yaw rate / speed)
+    slip_per_ay=1,  # rad/(m/s^2): |front - rear slip angle| of a steady turn per lateral acceleration (nominal tyres)
+    bias_alpha=1,  # share per cycle of the a_y running means (dt / bias_window)
     prior_sd=1,  # sd of log k of the prior around the start value
     restored_sd=1,  # ... around a restored (persisted) value
     nominal=4,  # N/rad: the nominal file's [C_af, C_gf, C_ar, C_gr]
@@ -63,6 +71,10 @@ PARAMS = Layout(
     P_CONVERGE_TIME,
     P_MAX_LEARNING_ROLL,
     P_MIN_LEARNING_SPEED,
+    P_MAX_LEARNING_BIAS_SHARE,
+    P_STEER_PER_YAW,
+    P_SLIP_PER_AY,
+    P_BIAS_ALPHA,
     P_PRIOR_SD,
     P_RESTORED_SD,
     P_NOMINAL,
@@ -113,6 +125,17 @@ TABLES = (
 T_GRID, T_SCALE, T_PHI, T_K, T_C, T_GD, T_NONLINEAR, T_SINV, T_LOGDET = range(len(TABLES))
 
 
+def steady_slip_difference_per_ay(v) -> float:
+    """|alpha_f - alpha_r| per unit lateral acceleration in a steady turn on the nominal tyres [rad/(m/s^2)]: the
+    forces m a_y l_r / L and m a_y l_f / L, less the camber forces at the lean a_y / g, over the cornering
+    stiffnesses. What a steer (or kinematic-steer) error is compared with: the tyres are learned from it."""
+    L = v.l_f + v.l_r
+    m = v.mass
+    front = (m * v.l_r / L - v.c_gf / v.g) / v.c_af
+    rear = (m * v.l_f / L - v.c_gr / v.g) / v.c_ar
+    return abs(front - rear)
+
+
 def build_params(settings, design) -> np.ndarray:
     est = settings.estimator
     tun = est.tyre_bank
@@ -126,6 +149,10 @@ def build_params(settings, design) -> np.ndarray:
         converge_time=est.converge_time,
         max_learning_roll=tun.max_learning_roll,
         min_learning_speed=tun.min_learning_speed,
+        max_learning_bias_share=tun.max_learning_bias_share,
+        steer_per_yaw=(settings.vehicle.l_f + settings.vehicle.l_r) / math.cos(settings.vehicle.caster),
+        slip_per_ay=steady_slip_difference_per_ay(settings.vehicle),
+        bias_alpha=min(float(design.sample_time) / tun.bias_window, 1.0),
         prior_sd=tun.prior_sd,
         restored_sd=tun.restored_sd,
         nominal=np.array(settings.vehicle.nominal_stiffness()),
@@ -188,7 +215,8 @@ def lateral_stage(
             and st[ST_RUN_TIME] >= prm[P_CONVERGE_TIME]
         )
         track = observe and u >= prm[P_MIN_LEARNING_SPEED]
-        learn = track and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL]
+        bias_share = _bias_share(st, prm, attitude[att.OUT_YAW_RATE_SD], y_kf[3], u)  # (its means: every cycle)
+        learn = track and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL] and bias_share <= prm[P_MAX_LEARNING_BIAS_SHARE]
         tb.bank_step(
             bank,
             bank_out,
@@ -249,6 +277,21 @@ def lateral_stage(
         out[OUT_TYRE_STIFFNESS + k] = bank_out[tb.OUT_SCALE] * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _bias_share(st: np.ndarray, prm: np.ndarray, yaw_rate_sd: float, a_y: float, u: float) -> float:
+    """How far (1 sd, as a share of k) the yaw gyro's remaining bias uncertainty can move the learned tyres. The
+    slip angles are measured against the kinematic steer L r / (u cos caster): a yaw-rate error b shifts it by a
+    constant L b / (u cos caster), which a least-squares fit of slip to force turns into a relative error of k of
+    (that shift) x mean(a_y) / (slip_per_ay x mean(a_y^2)). In a one-way corner that is the shift over the slip
+    difference itself (a 0.01 rad/s bias read tyres x1.75 on a wet road's corner at 50 km/h); riding left and
+    right it averages out."""
+    a = prm[P_BIAS_ALPHA]
+    st[ST_AY_MEAN] += a * (a_y - st[ST_AY_MEAN])
+    st[ST_AY_SQUARE] += a * (a_y * a_y - st[ST_AY_SQUARE])
+    shift = prm[P_STEER_PER_YAW] * yaw_rate_sd / max(u, 1.0)
+    return shift * abs(st[ST_AY_MEAN]) / (prm[P_SLIP_PER_AY] * max(st[ST_AY_SQUARE], 1e-6))
 
 
 def _bank(st: np.ndarray) -> np.ndarray:

@@ -80,6 +80,7 @@ STATE = Layout(
     tyre_alarm_until=1,  # s: the tyres are not valid before this (a short-window inconsistency was seen)
     tyre_stable_since=1,  # s: since when the most likely tyre hypothesis has been the same and concentrated
     tyre_last_map=1,  # that hypothesis' scale
+    tyre_evidence=1,  # s of learning cycles behind the tyre estimate, faded with the bank's memory
     torque_ms=1,  # N^2 m^2: windowed mean square of published - UIHOSMO-on-sensors torque (plausibility)
     implausible_until=1,  # s: the plausibility alarm holds until this
     steer_residual=1,  # rad: running mean of steer - kinematic steer - the tyres' slip difference
@@ -92,6 +93,7 @@ STATE = Layout(
     ST_TYRE_ALARM_UNTIL,
     ST_TYRE_STABLE_SINCE,
     ST_TYRE_LAST_MAP,
+    ST_TYRE_EVIDENCE,
     ST_TORQUE_MS,
     ST_IMPLAUSIBLE_UNTIL,
     ST_STEER_RESIDUAL,
@@ -126,6 +128,9 @@ PARAMS = Layout(
     tyre_valid_max_nis_fast=1,  # ... and its short-window NIS has not exceeded this
     tyre_hold=1,  # s: for this long after it did
     tyre_settle=1,  # s the most likely hypothesis must have stayed the same
+    tyre_min_evidence=1,  # s of learning cycles (faded like the bank's evidence) the estimate must rest on
+    tyre_learn_forget=1,  # per-cycle factors of that count: the bank's, while learning ...
+    tyre_idle_forget=1,  # ... and otherwise
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     model_max_nis_fast=1,  # the torque residual is not taken while the tyre filters' short-window NIS is above this
@@ -154,6 +159,9 @@ PARAMS = Layout(
     P_TYRE_VALID_MAX_NIS_FAST,
     P_TYRE_HOLD,
     P_TYRE_SETTLE,
+    P_TYRE_MIN_EVIDENCE,
+    P_TYRE_LEARN_FORGET,
+    P_TYRE_IDLE_FORGET,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
     P_MODEL_MAX_NIS_FAST,
@@ -204,6 +212,9 @@ def build_params(settings, design) -> np.ndarray:
         tyre_valid_max_nis_fast=est.tyre_bank.valid_max_nis_fast,
         tyre_hold=est.tyre_bank.alarm_hold,
         tyre_settle=est.tyre_bank.settle_time,
+        tyre_min_evidence=est.tyre_bank.valid_min_evidence,
+        tyre_learn_forget=math.exp(-float(design.sample_time) / est.tyre_bank.learning_memory),
+        tyre_idle_forget=math.exp(-float(design.sample_time) / est.tyre_bank.idle_memory),
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
         model_max_nis_fast=est.tyre_bank.max_evidence_nis_fast,
@@ -423,6 +434,12 @@ def supervisor_stage(
     t = st[ST_TIME]
     if lateral[lat.OUT_TYRE_NIS_FAST] > prm[P_TYRE_VALID_MAX_NIS_FAST]:
         st[ST_TYRE_ALARM_UNTIL] = t + prm[P_TYRE_HOLD]
+    # how much the estimate rests on: a posterior a few tenths of a second of one steady corner made narrow is
+    # not a measured tyre (its innovations are not white; docs/estimator.md, "Tyres")
+    if lateral[lat.OUT_TYRE_LEARNING] != 0.0:
+        st[ST_TYRE_EVIDENCE] = st[ST_TYRE_EVIDENCE] * prm[P_TYRE_LEARN_FORGET] + prm[P_DT]
+    else:
+        st[ST_TYRE_EVIDENCE] *= prm[P_TYRE_IDLE_FORGET]
     concentrated = lateral[lat.OUT_TYRE_LOG_SD] <= prm[P_TYRE_VALID_LOG_SD]
     if not concentrated or lateral[lat.OUT_TYRE_MAP_SCALE] != st[ST_TYRE_LAST_MAP]:
         st[ST_TYRE_STABLE_SINCE] = t
@@ -435,6 +452,7 @@ def supervisor_stage(
         and lateral[lat.OUT_TYRE_NIS] <= prm[P_TYRE_VALID_MAX_NIS]
         and t >= st[ST_TYRE_ALARM_UNTIL]
         and t - st[ST_TYRE_STABLE_SINCE] >= prm[P_TYRE_SETTLE]
+        and st[ST_TYRE_EVIDENCE] >= prm[P_TYRE_MIN_EVIDENCE]
     ):
         valid |= V_CORNERING | V_CAMBER
     out[OUT_MODE] = mode
