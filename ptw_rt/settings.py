@@ -67,6 +67,9 @@ PLAUSIBILITY_SCHEMA = Section(
         "band_start_kmh": (NumberList(Number("km/h", ge=0), min_len=1, max_len=8), (0.0, 30.0, 60.0, 90.0)),
         "torque_residual_nm": (NumberList(Number("N m", gt=0), min_len=1, max_len=8), (4.6, 4.8, 6.2, 8.2)),
         "hold": (Number("s", ge=0, le=60), 1.0),
+        # the two torques' disagreement that lag alone makes: a threshold sqrt(residual^2 + (lag x RMS of the
+        # published torque's rate)^2), so a busy rider's quick torque is not a fault (docs/estimator.md)
+        "lag": (Number("s", ge=0, le=1), 0.1),
     },
 )
 
@@ -359,6 +362,7 @@ class PlausibilityTuning:
     band_start_kmh: tuple[float, ...]
     torque_residual_nm: tuple[float, ...]
     hold: float
+    lag: float
 
     def __post_init__(self) -> None:
         starts = self.band_start_kmh

@@ -82,6 +82,8 @@ STATE = Layout(
     tyre_last_map=1,  # that hypothesis' scale
     tyre_evidence=1,  # s of learning cycles behind the tyre estimate, faded with the bank's memory
     torque_ms=1,  # N^2 m^2: windowed mean square of published - UIHOSMO-on-sensors torque (plausibility)
+    torque_rate_ms=1,  # N^2 m^2/s^2: ... of the published torque's rate (what lag alone turns into a residual)
+    last_torque=1,  # N m: the published torque of the last cycle the monitor ran
     implausible_until=1,  # s: the plausibility alarm holds until this
     steer_residual=1,  # rad: running mean of steer - kinematic steer - the tyres' slip difference
     steer_slip=1,  # rad: running mean of the slip difference (what an error of the tyres' scale would scale)
@@ -95,6 +97,8 @@ STATE = Layout(
     ST_TYRE_LAST_MAP,
     ST_TYRE_EVIDENCE,
     ST_TORQUE_MS,
+    ST_TORQUE_RATE_MS,
+    ST_LAST_TORQUE,
     ST_IMPLAUSIBLE_UNTIL,
     ST_STEER_RESIDUAL,
     ST_STEER_SLIP,
@@ -102,6 +106,7 @@ STATE = Layout(
 ) = STATE.offsets
 MAX_BANDS = 8  # speed bands of the plausibility threshold
 RESIDUAL_CLIP = 2.0  # thresholds: bound of one cycle's torque difference in the plausibility window
+MAX_TORQUE_RATE = 200.0  # N m/s: bound of one cycle's published torque rate in its mean square (a restart's jump)
 # The steer-kinematics check (`_steer_kinematics`, docs/estimator.md "Plausibility"): the 0.3 s running mean of
 # steer - kinematic steer - the tyres' slip difference, against STEER_RESIDUAL plus STEER_SLIP_SHARE of the slip
 # term's own running mean (the tyres' scale is known to about +-30 %, the bank's prior spread, and so is that
@@ -133,6 +138,7 @@ PARAMS = Layout(
     tyre_idle_forget=1,  # ... and otherwise
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
+    plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
     model_max_nis_fast=1,  # the torque residual is not taken while the tyre filters' short-window NIS is above this
     band_count=1,  # speed bands of the threshold
     band_start=MAX_BANDS,  # m/s where each band starts (increasing, the first 0)
@@ -164,6 +170,7 @@ PARAMS = Layout(
     P_TYRE_IDLE_FORGET,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
+    P_PLAUSIBILITY_LAG,
     P_MODEL_MAX_NIS_FAST,
     P_BAND_COUNT,
     P_BAND_START,
@@ -217,6 +224,7 @@ def build_params(settings, design) -> np.ndarray:
         tyre_idle_forget=math.exp(-float(design.sample_time) / est.tyre_bank.idle_memory),
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
+        plausibility_lag=est.plausibility.lag,
         model_max_nis_fast=est.tyre_bank.max_evidence_nis_fast,
         band_count=len(est.plausibility.band_start_kmh),
         band_start=_padded([v / 3.6 for v in est.plausibility.band_start_kmh]),
@@ -290,13 +298,22 @@ def _plausibility(
         if u >= prm[P_BAND_START + k]:
             band = k
     threshold = prm[P_BAND_THRESHOLD + band]
+    # the disagreement lag alone makes: a rider busy on the bar (twice the simulator's torque noise) drove the RMS
+    # residual to 1.34 thresholds with healthy sensors; a faulty sensor biases one torque, it does not quicken it
+    tau = lateral[lat.OUT_Z + kf.TAU]
+    if running:
+        rate = min(abs(tau - st[ST_LAST_TORQUE]) / prm[P_DT], MAX_TORQUE_RATE)
+        st[ST_TORQUE_RATE_MS] += prm[P_PLAUSIBILITY_ALPHA] * (rate * rate - st[ST_TORQUE_RATE_MS])
+    else:
+        st[ST_TORQUE_RATE_MS] = 0.0
+    st[ST_LAST_TORQUE] = tau
+    lag_term = prm[P_PLAUSIBILITY_LAG] * math.sqrt(max(st[ST_TORQUE_RATE_MS], 0.0))
+    threshold = math.sqrt(threshold * threshold + lag_term * lag_term)
     if compare:
         # each cycle's difference bounded at RESIDUAL_CLIP thresholds: a spike of a few cycles (the steer
         # differentiator after a loop stall or a late burst of frames) is not a disagreement; a persistent one
         # still fills the window within ~0.3 s
-        r = min(
-            max(lateral[lat.OUT_Z + kf.TAU] - us[cus.OUT_TORQUE], -RESIDUAL_CLIP * threshold), RESIDUAL_CLIP * threshold
-        )
+        r = min(max(tau - us[cus.OUT_TORQUE], -RESIDUAL_CLIP * threshold), RESIDUAL_CLIP * threshold)
         st[ST_TORQUE_MS] += prm[P_PLAUSIBILITY_ALPHA] * (r * r - st[ST_TORQUE_MS])
     elif not running:
         st[ST_TORQUE_MS] = 0.0
