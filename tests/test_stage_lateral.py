@@ -59,12 +59,12 @@ def test_a_blown_up_filter_is_reset_and_says_so(settings, design):
     assert _step(b, cond)[lat.OUT_DIVERGED] == 0.0
 
 
-def _share(b, yaw_rate_sd, a_y_of_t, u=14.0, seconds=20.0):
+def _share(b, yaw_rate_sd, a_y_of_t, u=14.0, seconds=20.0, a_y_sd=0.0):
     st = b.state.copy()
     dt = b.params[lat.P_DT]
     share = 0.0
     for k in range(int(seconds / dt)):
-        share = lat._bias_share(st, b.params, yaw_rate_sd, a_y_of_t(k * dt), u)
+        share = lat._bias_share(st, b.params, yaw_rate_sd, a_y_sd, a_y_of_t(k * dt), u)
     return share
 
 
@@ -80,3 +80,6 @@ def test_no_tyre_learning_on_a_yaw_gyro_bias_the_attitude_filter_has_not_pinned_
     assert _share(b, 0.0006, one_way) < limit
     slalom = lambda t: 2.0 * np.sin(2.0 * np.pi * t / 3.6)  # noqa: E731
     assert _share(b, 0.005, slalom, u=8.3) < limit  # in a one-way corner at that speed: 0.25
+    # an accelerometer bias the attitude filter is unsure of (0.05 m/s^2) matters in a gentle bend, not a corner
+    assert _share(b, 0.0, lambda t: 0.3, a_y_sd=0.05) > limit
+    assert _share(b, 0.0, one_way, a_y_sd=0.05) < limit

@@ -222,6 +222,7 @@ OUTPUTS = Layout(
     nu_course=1,  # whitened innovation of this cycle's GPS course (0 without a fix)
     course_fix=1,  # 1 if a GPS course was fused this cycle
     yaw_rate_sd=1,  # rad/s, standard deviation of yaw_rate from the biases' uncertainty (what the tyres learn on)
+    bay_sd=1,  # m/s^2, standard deviation of the lateral accelerometer's bias estimate
     # the stage's (attitude_stage), not the filter's:
     ok=1,  # 1: the filter is initialised and every output above is finite
     rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
@@ -245,12 +246,13 @@ OUTPUTS = Layout(
     OUT_NU_COURSE,
     OUT_COURSE_FIX,
     OUT_YAW_RATE_SD,
+    OUT_BAY_SD,
     OUT_OK,
     OUT_REJECTED_RUN,
     OUT_CONSISTENCY,
     OUT_INCONSISTENT,
 ) = OUTPUTS.offsets
-N_FILTER_OUT = OUT_YAW_RATE_SD + 1  # what `attitude_step` writes
+N_FILTER_OUT = OUT_BAY_SD + 1  # what `attitude_step` writes
 OUT_SIZE = OUTPUTS.size
 
 
@@ -645,6 +647,7 @@ def attitude_step(
     # r_ground = (q - b_q) sin(phi) + (r - b_r) cos(phi): its variance from the biases' covariance
     var_r = s * s * P[X_BQ, X_BQ] + c * c * P[X_BR, X_BR] + 2.0 * s * c * P[X_BQ, X_BR]
     out[OUT_YAW_RATE_SD] = math.sqrt(max(var_r, 0.0))
+    out[OUT_BAY_SD] = math.sqrt(max(P[X_BAY, X_BAY], 0.0))
 
 
 # ---- the estimator's stage: the filter with its inputs from the inputs and speed stages ----

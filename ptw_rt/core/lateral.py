@@ -215,7 +215,7 @@ def lateral_stage(
             and st[ST_RUN_TIME] >= prm[P_CONVERGE_TIME]
         )
         track = observe and u >= prm[P_MIN_LEARNING_SPEED]
-        bias_share = _bias_share(st, prm, attitude[att.OUT_YAW_RATE_SD], y_kf[3], u)  # (its means: every cycle)
+        bias_share = _bias_share(st, prm, attitude[att.OUT_YAW_RATE_SD], attitude[att.OUT_BAY_SD], y_kf[3], u)
         learn = track and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL] and bias_share <= prm[P_MAX_LEARNING_BIAS_SHARE]
         tb.bank_step(
             bank,
@@ -280,7 +280,7 @@ def lateral_stage(
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
-def _bias_share(st: np.ndarray, prm: np.ndarray, yaw_rate_sd: float, a_y: float, u: float) -> float:
+def _bias_share(st: np.ndarray, prm: np.ndarray, yaw_rate_sd: float, a_y_sd: float, a_y: float, u: float) -> float:
     """How far (1 sd, as a share of k) the yaw gyro's remaining bias uncertainty can move the learned tyres. The
     slip angles are measured against the kinematic steer L r / (u cos caster): a yaw-rate error b shifts it by a
     constant L b / (u cos caster), which a least-squares fit of slip to force turns into a relative error of k of
@@ -291,7 +291,8 @@ def _bias_share(st: np.ndarray, prm: np.ndarray, yaw_rate_sd: float, a_y: float,
     st[ST_AY_MEAN] += a * (a_y - st[ST_AY_MEAN])
     st[ST_AY_SQUARE] += a * (a_y * a_y - st[ST_AY_SQUARE])
     shift = prm[P_STEER_PER_YAW] * yaw_rate_sd / max(u, 1.0)
-    return shift * abs(st[ST_AY_MEAN]) / (prm[P_SLIP_PER_AY] * max(st[ST_AY_SQUARE], 1e-6))
+    # an accelerometer bias error scales the force the slip is fitted to in the same way: a_y_sd over a_y
+    return (shift / prm[P_SLIP_PER_AY] + a_y_sd) * abs(st[ST_AY_MEAN]) / max(st[ST_AY_SQUARE], 1e-6)
 
 
 def _bank(st: np.ndarray) -> np.ndarray:
