@@ -55,7 +55,7 @@ PARAMS = Layout(
     converge_time=1,  # s after a (re)start before the filters' innovations are evidence
     max_learning_roll=1,  # rad: beyond, the tyres leave their linear range: no learning
     min_learning_speed=1,  # m/s
-    max_learning_bias_share=1,  # no learning while the yaw rate's bias uncertainty may move k by more than this
+    max_learning_bias_share=1,  # no learning while the gyro's and accelerometer's bias spread may move k by more
     steer_per_yaw=1,  # m: wheelbase / cos(caster), the kinematic steer per (yaw rate / speed)
     slip_per_ay=1,  # rad/(m/s^2): |front - rear slip angle| of a steady turn per lateral acceleration (nominal tyres)
     bias_alpha=1,  # share per cycle of the a_y running means (dt / bias_window)
@@ -281,12 +281,12 @@ def lateral_stage(
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _bias_share(st: np.ndarray, prm: np.ndarray, yaw_rate_sd: float, a_y_sd: float, a_y: float, u: float) -> float:
-    """How far (1 sd, as a share of k) the yaw gyro's remaining bias uncertainty can move the learned tyres. The
-    slip angles are measured against the kinematic steer L r / (u cos caster): a yaw-rate error b shifts it by a
-    constant L b / (u cos caster), which a least-squares fit of slip to force turns into a relative error of k of
-    (that shift) x mean(a_y) / (slip_per_ay x mean(a_y^2)). In a one-way corner that is the shift over the slip
-    difference itself (a 0.01 rad/s bias read tyres x1.75 on a wet road's corner at 50 km/h); riding left and
-    right it averages out."""
+    """How far (1 sd, as a share of k) the attitude filter's remaining bias uncertainty can move the learned tyres.
+    The slip angles are measured against the kinematic steer L r / (u cos caster): a yaw-rate error b shifts it by
+    a constant L b / (u cos caster), which a least-squares fit of slip to force turns into a relative error of k of
+    (that shift / slip_per_ay) x mean(a_y) / mean(a_y^2); an accelerometer bias error scales the force by the same
+    factor. In a one-way corner that is the shift over the slip difference itself (a 0.01 rad/s bias read tyres
+    x1.75 on a wet road's corner at 50 km/h); riding left and right it averages out. Updates the a_y means."""
     a = prm[P_BIAS_ALPHA]
     st[ST_AY_MEAN] += a * (a_y - st[ST_AY_MEAN])
     st[ST_AY_SQUARE] += a * (a_y * a_y - st[ST_AY_SQUARE])

@@ -17,7 +17,8 @@ have settled. Tyre stiffness (the tyre bank's scale, lateral stage) from its own
 the posterior spread of log k within ``tyre_valid_log_sd`` (the data single out one tyre), the most likely
 filter's windowed normalised innovation within ``tyre_valid_max_nis`` (that tyre explains the data), no
 short-window inconsistency (``tyre_valid_max_nis_fast``, a sudden change of road) for ``tyre_hold`` seconds,
-the most likely hypothesis unchanged for ``tyre_settle`` seconds, and the observers settled.
+the most likely hypothesis unchanged for ``tyre_settle`` seconds, the estimate resting on ``tyre_min_evidence``
+seconds of learning (counted with the bank's fading memory), and the observers settled.
 
 Plausibility (issue #16): the published torque against the UIHOSMO on the sensors (``_plausibility``), and the
 steer angle against the yaw rate (``_steer_kinematics``): the steer angle is the kinematic L r cos(roll) /
