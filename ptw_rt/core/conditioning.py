@@ -33,14 +33,7 @@ from numba import njit
 from ptw_rt.core import attitude as att
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
-from ptw_rt.core.layout import (
-    REASON_COUNTER_JUMPS,
-    REASON_DECODE_ERRORS,
-    REASON_OUT_OF_RANGE,
-    REASON_SPEED_LOW,
-    REASON_STALE,
-    S_IMU_AGE,
-)
+from ptw_rt.core.layout import INPUT_FAULTS, REASON_SPEED_LOW, S_IMU_AGE
 from ptw_rt.core.params import lever_arm_coefficients
 from ptw_rt.core.stage import Layout, Stage
 
@@ -52,8 +45,6 @@ TWO_PI = 2.0 * math.pi
 STRAIGHT_YAW_RATE = 0.02  # rad/s
 STRAIGHT_LAT_ACCEL = 0.5  # m/s^2
 STEER_ZERO_MIN_SPEED = 5.0  # m/s: slower, the rider balances with the handlebar
-# inputs a cycle must not have flagged to teach the steer zero
-_INPUT_FAULTS = REASON_STALE | REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
 
 STATE = Layout(
     "ST_",
@@ -166,6 +157,12 @@ def steer_angle(count: float, zero_count: float, counts_per_rev: float) -> float
     return d * TWO_PI / counts_per_rev
 
 
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def kinematic_steer(wheelbase: float, cos_caster: float, yaw_rate: float, roll: float, u: float) -> float:
+    """Steer angle [rad] of a turn at this yaw rate without tyre slip: L r cos(roll) / (u cos(caster))."""
+    return wheelbase * yaw_rate * math.cos(roll) / (u * cos_caster)
+
+
 @njit(cache=True)
 def learn_steer_zero(
     st: np.ndarray, prm: np.ndarray, encoder_steer: float, yaw_rate: float, a_y: float, u: float
@@ -175,7 +172,7 @@ def learn_steer_zero(
     The caller decides the cycle's inputs are sound."""
     if u < STEER_ZERO_MIN_SPEED or abs(yaw_rate) > STRAIGHT_YAW_RATE or abs(a_y) > STRAIGHT_LAT_ACCEL:
         return
-    kinematic = prm[P_WHEELBASE] * yaw_rate / (u * prm[P_COS_CASTER])
+    kinematic = kinematic_steer(prm[P_WHEELBASE], prm[P_COS_CASTER], yaw_rate, 0.0, u)  # riding straight: upright
     shift = st[ST_STEER_ZERO_SHIFT] + prm[P_STEER_ZERO_RATE] * (encoder_steer - kinematic - st[ST_STEER_ZERO_SHIFT])
     bound = prm[P_STEER_ZERO_MAX_SHIFT]
     st[ST_STEER_ZERO_SHIFT] = min(max(shift, -bound), bound)
@@ -256,7 +253,7 @@ def conditioning_stage(
         and inputs[inp.OUT_CORE_OK] != 0.0
         and inputs[inp.OUT_ACCEL_OK] != 0.0
         and speed[spd.OUT_KNOWN] != 0.0
-        and reasons & _INPUT_FAULTS == 0
+        and reasons & INPUT_FAULTS == 0
         and math.isfinite(delta + r_ground + a_y + u)
     ):
         learn_steer_zero(st, prm, delta, r_ground, a_y, u)

@@ -332,13 +332,17 @@ class Estimator:
             return None
         return float(self.settings.sensors.steer_zero_count), float(st[cnd.ST_STEER_ZERO_SHIFT])
 
+    def steer_zero_max_shift(self) -> float:
+        """rad: how far the conditioning may move the steer zero (the configured counts, as the stage has them)."""
+        return float(self.params["conditioning"][cnd.P_STEER_ZERO_MAX_SHIFT])
+
     def restore_steer_zero(self, zero_count: float, shift: float) -> bool:
         """Start from a steer zero error learned on earlier rides, if it was learned against the zero count the
         configuration has now (False, nothing restored, if not: the encoder was re-zeroed in the file). Raises
         ValueError for a non-finite value or one beyond what the conditioning may learn."""
         if not (math.isfinite(zero_count) and math.isfinite(shift)):
             raise ValueError("expected a finite steer zero")
-        bound = self.params["conditioning"][cnd.P_STEER_ZERO_MAX_SHIFT]
+        bound = self.steer_zero_max_shift()
         if abs(shift) > bound * (1.0 + 1e-9):
             raise ValueError(f"steer zero error {shift:.6g} rad beyond the learnable {bound:.6g} rad")
         if zero_count != self.settings.sensors.steer_zero_count:

@@ -45,18 +45,16 @@ from ptw_rt.core import lateral as lat
 from ptw_rt.core import speed as spd
 from ptw_rt.core import uio_sensors as cus
 from ptw_rt.core.layout import (
+    INPUT_FAULTS,
     MODE_CONVERGING,
     MODE_DEGRADED,
     MODE_FAULT,
     MODE_INIT,
     MODE_VALID,
     REASON_ATTITUDE_INCONSISTENT,
-    REASON_COUNTER_JUMPS,
-    REASON_DECODE_ERRORS,
     REASON_DIVERGING,
     REASON_GPS_LOST,
     REASON_IMPLAUSIBLE,
-    REASON_OUT_OF_RANGE,
     REASON_SPEED_LOW,
     REASON_STALE,
     V_CAMBER,
@@ -119,8 +117,6 @@ MAX_TORQUE_RATE = 200.0  # N m/s: bound of one cycle's published torque rate in 
 STEER_WINDOW = 0.3  # s
 STEER_RESIDUAL = math.radians(0.5)  # rad
 STEER_SLIP_SHARE = 0.3
-# input faults that make this cycle's steer, yaw rate or a_y a held or doubtful value: neither check compares
-_INPUT_FAULTS = REASON_STALE | REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
 
 PARAMS = Layout(
     "P_",
@@ -360,7 +356,7 @@ def _steer_kinematics(
     elif sound and inputs[inp.OUT_ACCEL_OK] != 0.0:
         steer = cond[cnd.OUT_STEER]
         roll = cond[cnd.OUT_ROLL]
-        kinematic = prm[P_WHEELBASE] * cond[cnd.OUT_YAW_RATE] * math.cos(roll) / (u * prm[P_COS_CASTER])
+        kinematic = cnd.kinematic_steer(prm[P_WHEELBASE], prm[P_COS_CASTER], cond[cnd.OUT_YAW_RATE], roll, u)
         # the operating scale: near the grip limit the tyres act softer than their small-slip slope
         scale = max(lateral[lat.OUT_TYRE_OPERATING_SCALE], 0.1)
         alpha_f, alpha_r = tyre_slip_angles(prm, steer, roll, cond[cnd.OUT_A_Y], cond[cnd.OUT_YAW_ACCEL], scale)
@@ -395,7 +391,7 @@ def supervisor_stage(
     if attitude[att.OUT_INCONSISTENT] != 0.0:  # held by the attitude stage's own monitor
         reasons_now |= REASON_ATTITUDE_INCONSISTENT
     # no input the checks flagged this cycle (held or doubtful steer, rates or a_y): neither monitor compares
-    sound = reasons_now & _INPUT_FAULTS == 0
+    sound = reasons_now & INPUT_FAULTS == 0
     implausible = _plausibility(st, prm, out, cond, diag, lateral, speed[spd.OUT_U], sound)
     steer_implausible = _steer_kinematics(st, prm, inputs, cond, lateral, speed[spd.OUT_U], sound)
     out[OUT_STEER_RESIDUAL] = st[ST_STEER_RESIDUAL]

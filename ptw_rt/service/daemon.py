@@ -459,15 +459,13 @@ class Daemon:
             return
         design = self.runner.estimator.design
         tuning = self.settings.estimator.attitude
-        sensors = self.settings.sensors
         bounds = (
             stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound)
             | sensor_bias_bounds(
                 MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * tuning.initial_accel_bias_sd
             )
             | steer_zero_bounds(
-                sensors.steer_zero_max_shift * 2.0 * math.pi / sensors.steer_counts_per_rev,
-                sensors.steer_counts_per_rev,
+                self.runner.estimator.steer_zero_max_shift(), self.settings.sensors.steer_counts_per_rev
             )
         )
         loaded = restore_state(path, self.settings.config_hash, bounds)
