@@ -83,3 +83,19 @@ def test_no_tyre_learning_on_a_yaw_gyro_bias_the_attitude_filter_has_not_pinned_
     # an accelerometer bias the attitude filter is unsure of (0.05 m/s^2) matters in a gentle bend, not a corner
     assert _share(b, 0.0, lambda t: 0.3, a_y_sd=0.05) > limit
     assert _share(b, 0.0, one_way, a_y_sd=0.05) < limit
+
+
+def test_the_tyre_evidence_count_fades_with_the_banks_memories(settings, design):
+    """What the supervisor's tyre validity rests on: seconds of learning cycles, faded with the bank's learning
+    memory while it learns (tau (1 - exp(-t / tau))) and with its idle memory otherwise; a restart zeroes it."""
+    b = lat.STAGE.alone(settings, design)
+    st, dt = b.state.copy(), b.params[lat.P_DT]
+    tun = settings.estimator.tyre_bank
+    for _ in range(int(round(2.0 / dt))):
+        count = lat._count_evidence(st, b.params, True)
+    assert count == pytest.approx(tun.learning_memory * (1.0 - np.exp(-2.0 / tun.learning_memory)), rel=1e-3)
+    for _ in range(int(round(30.0 / dt))):
+        faded = lat._count_evidence(st, b.params, False)
+    assert faded == pytest.approx(count * np.exp(-30.0 / tun.idle_memory), rel=1e-3)
+    lat.reset(st)
+    assert st[lat.ST_TYRE_EVIDENCE] == 0.0

@@ -97,27 +97,49 @@ def test_validity(settings, design):
     assert math.isfinite(b.outputs[sup.OUT_ROLL_SD])
 
 
+class _EvidenceCount:
+    """The lateral stage's count of learning behind the tyre estimate, as it would run (`lateral._count_evidence`)."""
+
+    def __init__(self, settings, dt):
+        tun = settings.estimator.tyre_bank
+        self.learn_forget, self.idle_forget = math.exp(-dt / tun.learning_memory), math.exp(-dt / tun.idle_memory)
+        self.dt, self.value = dt, 0.0
+
+    def learn(self) -> float:
+        self.value = self.value * self.learn_forget + self.dt
+        return self.value
+
+    def idle(self) -> float:
+        self.value *= self.idle_forget
+        return self.value
+
+
 def test_tyre_validity_from_the_bank(settings, design):
     """Concentrated and consistent for `tyre_settle` s: valid; a short-window inconsistency: invalid for
     `tyre_hold` s; a wide posterior or an inconsistent model: never."""
     b = sup.STAGE.alone(settings, design)
     dt, settle, hold = b.params[sup.P_DT], b.params[sup.P_TYRE_SETTLE], b.params[sup.P_TYRE_HOLD]
-    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 0.87, "tyre_learning": 1.0}
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 0.87}
     bits = lay.V_CORNERING | lay.V_CAMBER
     n_settle = int(round(settle / dt))
-    # learning all along: valid once settled and once the faded count of learning cycles reaches the minimum
-    # (tau (1 - exp(-t / tau)) >= min_evidence with tau the learning memory)
+    # learning all along: valid once settled and once the faded count of learning cycles (the lateral stage's)
+    # reaches the minimum (tau (1 - exp(-t / tau)) >= min_evidence with tau the learning memory)
     memory, evidence = settings.estimator.tyre_bank.learning_memory, b.params[sup.P_TYRE_MIN_EVIDENCE]
     n_valid = max(n_settle, int(math.ceil(-memory * math.log(1.0 - evidence / memory) / dt)))
-    valid = [_step(b, tyres=good)[2] & bits for _ in range(n_valid + 2)]
+    count = _EvidenceCount(settings, dt)
+    valid = [_step(b, tyres={**good, "tyre_evidence": count.learn()})[2] & bits for _ in range(n_valid + 2)]
     assert not any(valid[: n_valid - 2]) and valid[-1] == bits
-    assert not _step(b, tyres={**good, "tyre_nis_fast": 50.0})[2] & bits  # a sudden misfit
-    held = [_step(b, tyres=good)[2] & bits for _ in range(int(round(hold / dt)) - 1)]
+    assert not _step(b, tyres={**good, "tyre_nis_fast": 50.0, "tyre_evidence": count.learn()})[2] & bits
+    held = [
+        _step(b, tyres={**good, "tyre_evidence": count.learn()})[2] & bits for _ in range(int(round(hold / dt)) - 1)
+    ]
     assert not any(held)
     b2 = sup.STAGE.alone(settings, design)
+    count2 = _EvidenceCount(settings, dt)
     for _ in range(n_settle + 2):
-        wide = _step(b2, tyres={**good, "tyre_log_sd": 0.2})[2]
-        misfit = _step(b2, tyres={**good, "tyre_nis": 20.0})[2]
+        # learning all along (it reaches the minimum in the loop): only the spread or the fit is lacking
+        wide = _step(b2, tyres={**good, "tyre_log_sd": 0.2, "tyre_evidence": count2.learn()})[2]
+        misfit = _step(b2, tyres={**good, "tyre_nis": 20.0, "tyre_evidence": count2.learn()})[2]
         assert not (wide | misfit) & bits
 
 
@@ -129,10 +151,11 @@ def test_a_posterior_made_narrow_by_a_moment_of_one_corner_is_not_valid(settings
     dt = b.params[sup.P_DT]
     narrow = {"tyre_log_sd": 0.0, "tyre_nis": 2.4, "tyre_nis_fast": 2.4, "tyre_map_scale": 0.72}
     bits = lay.V_CORNERING | lay.V_CAMBER
+    count = _EvidenceCount(settings, dt)
     for _ in range(int(0.4 / dt)):
-        assert not _step(b, tyres={**narrow, "tyre_learning": 1.0})[2] & bits
+        assert not _step(b, tyres={**narrow, "tyre_evidence": count.learn()})[2] & bits
     for _ in range(int(20.0 / dt)):  # then 20 s of a deeper lean: nothing learned, nothing claimed
-        assert not _step(b, tyres=narrow)[2] & bits
+        assert not _step(b, tyres={**narrow, "tyre_evidence": count.idle()})[2] & bits
 
 
 def _steady_turn(b, speed: float, lat_accel: float, steer_offset: float = 0.0, yaw_gyro_scale: float = 1.0) -> dict:
@@ -157,7 +180,8 @@ def test_the_steer_angle_is_checked_against_the_yaw_rate_in_a_corner(settings, d
     b = sup.STAGE.alone(settings, design)
     dt = b.params[sup.P_DT]
     sup_speed = {"known": 1.0}
-    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 1.0, "tyre_learning": 1.0}
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 1.0}
+    count = _EvidenceCount(settings, dt)
 
     def step(turn):
         inputs = inp.OUTPUTS.vector({"core_ok": 1.0, "imu_ok": 1.0, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
@@ -165,7 +189,9 @@ def test_the_steer_angle_is_checked_against_the_yaw_rate_in_a_corner(settings, d
         attitude = att.OUTPUTS.vector({"ok": 1.0, "roll_sd": 0.001}, strict=False)
         cond = cnd.OUTPUTS.vector({"run": 1.0, **turn}, strict=False)
         diag = dia.OUTPUTS.vector({}, strict=False)
-        lateral = lat.OUTPUTS.vector({"run_time": 10.0, "tyre_operating_scale": 1.0, **good}, strict=False)
+        lateral = lat.OUTPUTS.vector(
+            {"run_time": 10.0, "tyre_operating_scale": 1.0, "tyre_evidence": count.learn(), **good}, strict=False
+        )
         sup.supervisor_stage(b.state, b.params, b.outputs, inputs, speed_out, attitude, cond, diag, lateral)
         return int(b.outputs[sup.OUT_REASONS]), int(b.outputs[sup.OUT_VALID])
 

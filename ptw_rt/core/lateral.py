@@ -41,11 +41,12 @@ STATE = Layout(
     run_time=1,  # s since the model-based observers last (re)started
     ay_mean=1,  # m/s^2: running mean of a_y (`bias_window`): what a constant steer error biases the slip by
     ay_square=1,  # m^2/s^4: running mean of a_y^2: the slip signal the tyres are learned from
+    tyre_evidence=1,  # s of learning cycles behind the tyre estimate, faded with the bank's memories
     y=kf.N_Y,  # scratch: this cycle's measurements
     scratch=tb.SCRATCH_SIZE,  # the bank's scratch
     bank_out=tb.OUT_SIZE,  # the bank's outputs
 )
-ST_BANK, ST_RUN_TIME, ST_AY_MEAN, ST_AY_SQUARE, ST_Y, ST_SCRATCH, ST_BANK_OUT = STATE.offsets
+ST_BANK, ST_RUN_TIME, ST_AY_MEAN, ST_AY_SQUARE, ST_TYRE_EVIDENCE, ST_Y, ST_SCRATCH, ST_BANK_OUT = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -93,6 +94,7 @@ OUTPUTS = Layout(
     tyre_nis=1,  # its windowed mean normalised innovation (consistency; expected kf.N_Y)
     tyre_nis_fast=1,  # ... over the short window
     tyre_learning=1,  # 1: this cycle's evidence moved the estimate
+    tyre_evidence=1,  # s of such cycles behind the estimate, faded with the bank's memories (what validity rests on)
     tyre_operating_scale=1,  # k the mixture runs on (evidence at any lean: near saturation, the secant slope)
     tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
 )
@@ -107,6 +109,7 @@ OUTPUTS = Layout(
     OUT_TYRE_NIS,
     OUT_TYRE_NIS_FAST,
     OUT_TYRE_LEARNING,
+    OUT_TYRE_EVIDENCE,
     OUT_TYRE_OPERATING_SCALE,
     OUT_TYRE_STIFFNESS,
 ) = OUTPUTS.offsets
@@ -272,6 +275,7 @@ def lateral_stage(
     out[OUT_TYRE_NIS] = bank_out[tb.OUT_MAP_NIS]
     out[OUT_TYRE_NIS_FAST] = bank_out[tb.OUT_MAP_NIS_FAST]
     out[OUT_TYRE_LEARNING] = bank_out[tb.OUT_LEARNING]
+    out[OUT_TYRE_EVIDENCE] = _count_evidence(st, prm, bank_out[tb.OUT_LEARNING] != 0.0)
     out[OUT_TYRE_OPERATING_SCALE] = bank_out[tb.OUT_OPERATING_SCALE]
     for k in range(4):
         out[OUT_TYRE_STIFFNESS + k] = bank_out[tb.OUT_SCALE] * prm[P_NOMINAL + k]
@@ -295,6 +299,19 @@ def _bias_share(st: np.ndarray, prm: np.ndarray, yaw_rate_sd: float, a_y_sd: flo
     return (shift / prm[P_SLIP_PER_AY] + a_y_sd) * abs(st[ST_AY_MEAN]) / max(st[ST_AY_SQUARE], 1e-6)
 
 
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _count_evidence(st: np.ndarray, prm: np.ndarray, learning: bool) -> float:
+    """Seconds of learning cycles behind the tyre estimate, faded with the bank's own memories (its learning one
+    while this cycle's evidence moved the estimate, its idle one otherwise): how much the estimate rests on. A
+    posterior that a few tenths of a second of one steady corner made narrow is not a measured tyre (its
+    innovations are not white; docs/estimator.md, "Tyres")."""
+    if learning:
+        st[ST_TYRE_EVIDENCE] = st[ST_TYRE_EVIDENCE] * prm[P_BANK + tb.B_LEARN_FORGET] + prm[P_DT]
+    else:
+        st[ST_TYRE_EVIDENCE] *= prm[P_BANK + tb.B_IDLE_FORGET]
+    return st[ST_TYRE_EVIDENCE]
+
+
 def _bank(st: np.ndarray) -> np.ndarray:
     return st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)]
 
@@ -304,8 +321,10 @@ def _bank_params(prm: np.ndarray) -> np.ndarray:
 
 
 def reset(st: np.ndarray) -> None:
-    """Forget the dynamic states; keep what the bank learned (its evidence and prior)."""
+    """Forget the dynamic states; keep what the bank learned (its evidence and prior). The count of learning
+    behind the estimate starts again: after a restart the tyres are valid again only on new learning."""
     st[ST_RUN_TIME] = 0.0
+    st[ST_TYRE_EVIDENCE] = 0.0
     bank = _bank(st)
     for h in range(MAX_HYPOTHESES):
         bank[h * tb.BLOCK + kf.INIT] = 0.0

@@ -18,7 +18,7 @@ the posterior spread of log k within ``tyre_valid_log_sd`` (the data single out 
 filter's windowed normalised innovation within ``tyre_valid_max_nis`` (that tyre explains the data), no
 short-window inconsistency (``tyre_valid_max_nis_fast``, a sudden change of road) for ``tyre_hold`` seconds,
 the most likely hypothesis unchanged for ``tyre_settle`` seconds, the estimate resting on ``tyre_min_evidence``
-seconds of learning (counted with the bank's fading memory), and the observers settled.
+seconds of learning (the lateral stage's count, faded with the bank's memories), and the observers settled.
 
 Plausibility (issue #16): the published torque against the UIHOSMO on the sensors (``_plausibility``), and the
 steer angle against the yaw rate (``_steer_kinematics``): the steer angle is the kinematic L r cos(roll) /
@@ -79,7 +79,6 @@ STATE = Layout(
     tyre_alarm_until=1,  # s: the tyres are not valid before this (a short-window inconsistency was seen)
     tyre_stable_since=1,  # s: since when the most likely tyre hypothesis has been the same and concentrated
     tyre_last_map=1,  # that hypothesis' scale
-    tyre_evidence=1,  # s of learning cycles behind the tyre estimate, faded with the bank's memory
     torque_ms=1,  # N^2 m^2: windowed mean square of published - UIHOSMO-on-sensors torque (plausibility)
     torque_rate_ms=1,  # N^2 m^2/s^2: ... of the published torque's rate (what lag alone turns into a residual)
     last_torque=1,  # N m: the published torque of the last cycle the monitor ran
@@ -94,7 +93,6 @@ STATE = Layout(
     ST_TYRE_ALARM_UNTIL,
     ST_TYRE_STABLE_SINCE,
     ST_TYRE_LAST_MAP,
-    ST_TYRE_EVIDENCE,
     ST_TORQUE_MS,
     ST_TORQUE_RATE_MS,
     ST_LAST_TORQUE,
@@ -130,9 +128,7 @@ PARAMS = Layout(
     tyre_valid_max_nis_fast=1,  # ... and its short-window NIS has not exceeded this
     tyre_hold=1,  # s: for this long after it did
     tyre_settle=1,  # s the most likely hypothesis must have stayed the same
-    tyre_min_evidence=1,  # s of learning cycles (faded like the bank's evidence) the estimate must rest on
-    tyre_learn_forget=1,  # per-cycle factors of that count: the bank's, while learning ...
-    tyre_idle_forget=1,  # ... and otherwise
+    tyre_min_evidence=1,  # s of learning cycles (the lateral stage's faded count) the estimate must rest on
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
@@ -163,8 +159,6 @@ PARAMS = Layout(
     P_TYRE_HOLD,
     P_TYRE_SETTLE,
     P_TYRE_MIN_EVIDENCE,
-    P_TYRE_LEARN_FORGET,
-    P_TYRE_IDLE_FORGET,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
     P_PLAUSIBILITY_LAG,
@@ -217,8 +211,6 @@ def build_params(settings, design) -> np.ndarray:
         tyre_hold=est.tyre_bank.alarm_hold,
         tyre_settle=est.tyre_bank.settle_time,
         tyre_min_evidence=est.tyre_bank.valid_min_evidence,
-        tyre_learn_forget=math.exp(-float(design.sample_time) / est.tyre_bank.learning_memory),
-        tyre_idle_forget=math.exp(-float(design.sample_time) / est.tyre_bank.idle_memory),
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
@@ -448,12 +440,6 @@ def supervisor_stage(
     t = st[ST_TIME]
     if lateral[lat.OUT_TYRE_NIS_FAST] > prm[P_TYRE_VALID_MAX_NIS_FAST]:
         st[ST_TYRE_ALARM_UNTIL] = t + prm[P_TYRE_HOLD]
-    # how much the estimate rests on: a posterior a few tenths of a second of one steady corner made narrow is
-    # not a measured tyre (its innovations are not white; docs/estimator.md, "Tyres")
-    if lateral[lat.OUT_TYRE_LEARNING] != 0.0:
-        st[ST_TYRE_EVIDENCE] = st[ST_TYRE_EVIDENCE] * prm[P_TYRE_LEARN_FORGET] + prm[P_DT]
-    else:
-        st[ST_TYRE_EVIDENCE] *= prm[P_TYRE_IDLE_FORGET]
     concentrated = lateral[lat.OUT_TYRE_LOG_SD] <= prm[P_TYRE_VALID_LOG_SD]
     if not concentrated or lateral[lat.OUT_TYRE_MAP_SCALE] != st[ST_TYRE_LAST_MAP]:
         st[ST_TYRE_STABLE_SINCE] = t
@@ -466,7 +452,7 @@ def supervisor_stage(
         and lateral[lat.OUT_TYRE_NIS] <= prm[P_TYRE_VALID_MAX_NIS]
         and t >= st[ST_TYRE_ALARM_UNTIL]
         and t - st[ST_TYRE_STABLE_SINCE] >= prm[P_TYRE_SETTLE]
-        and st[ST_TYRE_EVIDENCE] >= prm[P_TYRE_MIN_EVIDENCE]
+        and lateral[lat.OUT_TYRE_EVIDENCE] >= prm[P_TYRE_MIN_EVIDENCE]  # what it rests on (lateral stage)
     ):
         valid |= V_CORNERING | V_CAMBER
     out[OUT_MODE] = mode
