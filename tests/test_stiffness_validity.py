@@ -72,3 +72,40 @@ def test_an_imu_with_larger_biases_does_not_make_a_wrong_tyre_valid():
     valid = (E[:, L.E_VALID].astype(int) & L.V_CORNERING) != 0
     stats = valid_stiffness_stats(ev.t, E[:, L.E_C_ALPHA_FRONT], ev.truth["c_alpha_front"], valid, ev.mask)
     assert stats["max_abs_err_pct"] is None or stats["max_abs_err_pct"] <= 20.0
+
+
+# A real scooter differs from the file in every way at once: tyres, road, payload, a worse IMU, an encoder a count
+# off, a busier rider. Ranges: tyres 0.6-1.4, friction x0.7-1.0, payload -40..+40 kg, IMU noise and biases x1-2,
+# steer zero -1/0/+1 count, rider x1-2. (200 such draws over the eight scenarios, 2026-11-26: largest error while
+# VALID 13.4 %, docs/estimator.md.)
+COMBINED_DRAW_SEED = 4711
+COMBINED_SCENARIOS = ("handling_40_120", "urban", "sensor_faults", "slalom_30")  # where a ride is long enough to be VALID
+
+
+def _combined_draws():
+    rng = np.random.default_rng(COMBINED_DRAW_SEED)
+    out = []
+    for k in range(N_DRAWS):
+        perturb = (
+            f"stiffness={rng.uniform(0.6, 1.4):.3f}",
+            f"mu_scale={rng.uniform(0.7, 1.0):.3f}",
+            f"added_mass={rng.uniform(-40.0, 40.0):.1f}",
+            f"imu_noise={rng.uniform(1.0, 2.0):.3f}",
+            f"imu_bias={rng.uniform(1.0, 2.0):.3f}",
+            f"steer_offset={int(rng.integers(-1, 2))}",
+            f"rider_noise={rng.uniform(1.0, 2.0):.3f}",
+        )
+        out.append((COMBINED_SCENARIOS[k % len(COMBINED_SCENARIOS)], perturb, int(rng.integers(0, 10_000))))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario, perturb, seed", _combined_draws())
+def test_stiffness_flagged_valid_is_within_20_percent_on_a_scooter_unlike_the_file(scenario, perturb, seed):
+    ride = simulate(scenario, seed=seed, perturbation=parse_perturbations(list(perturb)))
+    ev = evaluate_ride(ride)
+    E, truth = ev.estimates, ev.truth
+    valid = ev.mask & ((E[:, L.E_VALID].astype(int) & (L.V_CORNERING | L.V_CAMBER)) != 0)
+    for slot, name in TRUTH.items():
+        err = np.abs(E[valid, slot] / truth[name][valid] - 1.0)
+        assert err.size == 0 or err.max() <= 0.20, f"{name}: {100 * err.max():.1f} % off while VALID ({perturb})"
