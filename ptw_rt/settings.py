@@ -153,7 +153,12 @@ ESTIMATOR_SCHEMA = Section(
                 "roll_rate_noise": Number("rad/s", gt=0),
                 "lateral_accel_noise": Number("m/s^2", gt=0),
                 "roll_noise": Number("rad", gt=0),
-            }
+            },
+            optional={
+                # the filters whose states are published: factors on the front and rear tyre forces' process noise
+                # (their typical magnitude) over the evidence filters' (docs/estimator.md, "Published states")
+                "published_force_noise": (NumberList(Number("", ge=1, le=1000), min_len=2, max_len=2), (1.0, 1.0)),
+            },
         ),
         "force_observer_yaw_bound": Number("rad/s^3", gt=0),
         "force_observer_lateral_bound": Number("m/s^3", gt=0),
@@ -322,6 +327,8 @@ class KalmanTuning:
     roll_rate_noise: float  # rad/s
     lateral_accel_noise: float  # m/s^2
     roll_noise: float  # rad: error of the kinematic attitude filter's roll, fused as a measurement
+    # the publishing filters' tyre forces (front, rear): factors on their process noise, freer of the tyre model
+    published_force_noise: tuple[float, float] = (1.0, 1.0)
 
 
 @dataclass(frozen=True)

@@ -51,12 +51,16 @@ def test_a_blown_up_filter_is_reset_and_says_so(settings, design):
     b = lat.STAGE.alone(settings, design)
     cond = cnd.OUTPUTS.vector({"run": 1.0, "roll_last": 0.1, "steer": 0.02, "yaw_rate": 0.03}, strict=False)
     _step(b, cond)
-    for h in range(len(design.tb_scale)):  # every filter of the tyre bank blown up
-        b.state[lat.ST_BANK + h * tb.BLOCK : lat.ST_BANK + h * tb.BLOCK + kf.N_Z] = 1e12
-    out = _step(b, cond)
-    assert out[lat.OUT_DIVERGED] == 1.0
-    assert out[lat.OUT_Z + kf.PHI] == 0.1 and out[lat.OUT_Z + kf.DELTA] == 0.02 and out[lat.OUT_Z + kf.TAU] == 0.0
-    assert _step(b, cond)[lat.OUT_DIVERGED] == 0.0
+    H = len(design.tb_scale)
+    for first in (0, tb._published0(H)):  # every evidence filter of the bank, or every publishing one
+        state = b.state.copy()
+        for h in range(H):
+            b.state[lat.ST_BANK + first + h * tb.BLOCK : lat.ST_BANK + first + h * tb.BLOCK + kf.N_Z] = 1e12
+        out = _step(b, cond)
+        assert out[lat.OUT_DIVERGED] == 1.0
+        assert out[lat.OUT_Z + kf.PHI] == 0.1 and out[lat.OUT_Z + kf.DELTA] == 0.02 and out[lat.OUT_Z + kf.TAU] == 0.0
+        assert _step(b, cond)[lat.OUT_DIVERGED] == 0.0
+        b.state[:] = state
 
 
 def _share(b, yaw_rate_sd, a_y_of_t, u=14.0, seconds=20.0, a_y_sd=0.0):

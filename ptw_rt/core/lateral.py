@@ -1,7 +1,8 @@
 """Stage 6, lateral dynamics and tyres: the tyre bank (`ptw_rt.core.tyre_bank`) of fusion filters (jitted).
 
-One fusion filter (`ptw_rt.core.kalman`) per hypothesis of the tyres' scale; the published states (torque,
-steer rate, v_y, forces) are their posterior mixture, so the tyres they run on are the learned ones, and the
+One fusion filter (`ptw_rt.core.kalman`) per hypothesis of the tyres' scale, and beside it one whose tyre forces
+may stray further from the tyre model; the published states (torque, steer rate, v_y, forces) are the latter's
+posterior mixture, so the tyres they run on are the learned ones, and the
 scale estimate with its spread and the filters' consistency (NIS) are this stage's outputs (the supervisor
 makes the stiffness valid bits from them). Learning is allowed only from sound inputs (this cycle's
 measurements new and in range), after the filters settled, above `min_learning_speed` and below
@@ -124,8 +125,24 @@ TABLES = (
     ("kf_nonlinear", 1),
     ("tb_Sinv", 3),
     ("tb_logdet", 3),
+    ("tb_Phi_pub", 3),
+    ("tb_K_pub", 3),
+    ("tb_Gd_pub", 3),
 )
-T_GRID, T_SCALE, T_PHI, T_K, T_C, T_GD, T_NONLINEAR, T_SINV, T_LOGDET = range(len(TABLES))
+(
+    T_GRID,
+    T_SCALE,
+    T_PHI,
+    T_K,
+    T_C,
+    T_GD,
+    T_NONLINEAR,
+    T_SINV,
+    T_LOGDET,
+    T_PHI_PUB,
+    T_K_PUB,
+    T_GD_PUB,
+) = range(len(TABLES))
 
 
 def steady_slip_difference_per_ay(v) -> float:
@@ -240,6 +257,9 @@ def lateral_stage(
             v1(tables, tindex, t0 + T_NONLINEAR),
             v3(tables, tindex, t0 + T_SINV),
             v3(tables, tindex, t0 + T_LOGDET),
+            v3(tables, tindex, t0 + T_PHI_PUB),
+            v3(tables, tindex, t0 + T_K_PUB),
+            v3(tables, tindex, t0 + T_GD_PUB),
         )
         for k in range(kf.N_Z):
             kf_out[k] = bank_out[tb.OUT_Z + k]
@@ -247,6 +267,8 @@ def lateral_stage(
             not all_finite(kf_out, kf.N_Z)
             or abs(kf_out[kf.PHI]) > prm[P_MAX_ROLL]
             or abs(kf_out[kf.TAU]) > prm[P_MAX_TORQUE]
+            or not abs(bank_out[tb.OUT_EVIDENCE_ROLL]) <= prm[P_MAX_ROLL]  # also a NaN
+            or not abs(bank_out[tb.OUT_EVIDENCE_TORQUE]) <= prm[P_MAX_TORQUE]
         ):
             tb.restart_filters(bank, bank_prm)
             diverged = True

@@ -22,8 +22,15 @@ Only a window of 2 `running_half_width` + 1 filters around the small-slip poster
 hypothesis runs (the cost is per running filter); one that joins the window starts from its neighbour's
 state and evidence.
 
-Outputs: the operating posterior's mixture of the filters' states (what the lateral-dynamics filter
-publishes: the learned tyres are the ones the published torque and forces come from), the scale estimate
+Each hypothesis runs two filters on the same measurements: its **evidence** filter, whose innovations are
+the likelihoods above, and its **publishing** filter, the same vehicle with the tyre forces' process noise
+scaled by `fusion_filter.published_force_noise` (design: ptw_rt.design.tyre_bank). The evidence needs the
+tyre model's tight link from slip to force (that is what tells tyres apart); the published torque and forces
+are better where the forces follow the measured a_y and yaw when the tyres leave the model (near the grip
+limit: `mu_drop` on μ 0.85, torque error 16.4 -> 13.9 % of the peak, docs/estimator.md).
+
+Outputs: the operating posterior's mixture of the publishing filters' states (what the lateral-dynamics
+filter publishes: the learned tyres are the ones the published torque and forces come from), the scale estimate
 k = exp(sum w_h log k_h) (or, for a posterior narrower than the grid, the peak of a parabola through the
 log-posterior around the most likely hypothesis: `_sub_grid_peak`), its spread sd(log k), the weight and the
 windowed mean normalised innovation
@@ -61,13 +68,13 @@ B_MAX_EVIDENCE_NIS = 11  # no evidence while even the best-fitting filter's shor
 PARAM_SIZE = 12
 
 # ---- state layout: H blocks of (z, init), then per-hypothesis vectors (log-likelihood, NIS, prior, fast NIS,
-# operating log-likelihood, unclipped log-likelihood), then scalars ----
+# operating log-likelihood, unclipped log-likelihood), then scalars, then H blocks of the publishing filters ----
 BLOCK = kf.STATE_SIZE  # one fusion filter's state
 
 
 @njit(cache=True)
 def state_size(count: int) -> int:
-    return count * BLOCK + 6 * count + N_SCALARS
+    return count * BLOCK + 6 * count + N_SCALARS + count * BLOCK
 
 
 @njit(cache=True)
@@ -105,6 +112,12 @@ def _scalars0(count: int) -> int:
     return count * BLOCK + 6 * count
 
 
+@njit(cache=True)
+def _published0(count: int) -> int:
+    """Hypothesis h's publishing filter is the block at this + h BLOCK (module doc)."""
+    return count * BLOCK + 6 * count + N_SCALARS
+
+
 SC_CENTRE = 0  # log k of the prior's centre
 SC_INIT = 1  # 1 once the prior is set
 SC_MS_AY = 2  # windowed mean square of a_y
@@ -114,7 +127,7 @@ SC_MAP = 5  # the small-slip posterior's most likely hypothesis of the last cycl
 N_SCALARS = 6
 
 # ---- outputs ----
-OUT_Z = 0  # posterior mixture of the filters' corrected states (kf.N_Z)
+OUT_Z = 0  # operating posterior's mixture of the publishing filters' corrected states (kf.N_Z)
 OUT_SCALE = kf.N_Z  # k
 OUT_LOG_SD = OUT_SCALE + 1  # sd of log k
 OUT_MAP_WEIGHT = OUT_SCALE + 2  # weight of the most likely hypothesis
@@ -123,7 +136,9 @@ OUT_MAP_SCALE = OUT_SCALE + 4  # its k
 OUT_MAP_NIS_FAST = OUT_SCALE + 5  # its NIS over the short window
 OUT_LEARNING = OUT_SCALE + 6  # 1 if this cycle's evidence moved the estimate
 OUT_OPERATING_SCALE = OUT_SCALE + 7  # the operating posterior's scale (what the mixture runs on)
-OUT_SIZE = OUT_SCALE + 8
+OUT_EVIDENCE_ROLL = OUT_SCALE + 8  # the same mixture of the evidence filters' roll and torque (a blown-up filter
+OUT_EVIDENCE_TORQUE = OUT_SCALE + 9  # among them shows here, though its states are not published)
+OUT_SIZE = OUT_SCALE + 10
 
 MAX_COUNT = 32  # hypotheses the scratch is laid out for (the design file has `len(tb_scale)`)
 # scratch needed by `bank_step`: innovation (N_Y), one filter's output (N_Z), correction forces (N_D), then per
@@ -198,6 +213,7 @@ def _enter_window(st: np.ndarray, count: int, h: int, source: int) -> None:
     filter's state and evidence, so it is as likely as its neighbour until the data tell them apart."""
     for k in range(BLOCK):
         st[h * BLOCK + k] = st[source * BLOCK + k]
+        st[_published0(count) + h * BLOCK + k] = st[_published0(count) + source * BLOCK + k]
     st[_logl0(count) + h] = st[_logl0(count) + source]
     st[_logl_operating0(count) + h] = st[_logl_operating0(count) + source]
     st[_logl_raw0(count) + h] = st[_logl_raw0(count) + source]
@@ -216,10 +232,12 @@ def prior_centre(st: np.ndarray, prm: np.ndarray) -> float:
 
 @njit(cache=True)
 def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
-    """Re-initialise every filter's dynamic states at the next step; the evidence is kept."""
+    """Re-initialise every filter's dynamic states (evidence and publishing) at the next step; the evidence is
+    kept."""
     H = int(prm[B_COUNT])
     for h in range(H):
         st[h * BLOCK + kf.INIT] = 0.0
+        st[_published0(H) + h * BLOCK + kf.INIT] = 0.0
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -300,6 +318,9 @@ def bank_step(
     nl: np.ndarray,
     Sinv: np.ndarray,
     logdet: np.ndarray,
+    Phi_pub: np.ndarray,
+    K_pub: np.ndarray,
+    Gd_pub: np.ndarray,
 ) -> None:
     """One cycle: each filter's innovation, evidence, the two posteriors, then every running filter's step, mixed.
 
@@ -405,12 +426,19 @@ def bank_step(
     map_h = _most_likely(logl, lo, hi)
     mean_log = _sub_grid_peak(logl_raw, log_scale, lo, hi, map_h, mean_log)
 
-    # 3. every running filter's step; the published states are the operating posterior's mixture
+    # 3. every running filter's step; the published states are the operating posterior's mixture of the
+    # publishing filters'
     for k in range(kf.N_Z):
         out[OUT_Z + k] = 0.0
+    out[OUT_EVIDENCE_ROLL] = 0.0
+    out[OUT_EVIDENCE_TORQUE] = 0.0
+    p0 = _published0(H)
     for h in range(lo, hi + 1):
         # filter h's state block and its tables' rows around u (hypothesis h's grid starts at row h G)
         kf.kalman_step_at(st, h * BLOCK, zh, y, u, roll_init, h * G + i, w, Phi, K, C, Gd, nl, d)
+        out[OUT_EVIDENCE_ROLL] += weight_op[h] * zh[kf.PHI]
+        out[OUT_EVIDENCE_TORQUE] += weight_op[h] * zh[kf.TAU]
+        kf.kalman_step_at(st, p0 + h * BLOCK, zh, y, u, roll_init, h * G + i, w, Phi_pub, K_pub, C, Gd_pub, nl, d)
         for k in range(kf.N_Z):
             out[OUT_Z + k] += weight_op[h] * zh[k]
     out[OUT_SCALE] = math.exp(mean_log)

@@ -36,6 +36,7 @@ N_Y = 5
 TAU = 8
 # typical magnitudes of the states (the process noise of state i is process_noise * SCALE_i^2 per second)
 STATE_SCALE = np.array([0.1, 0.01, 0.3, 0.1, 0.3, 0.1, 500.0, 500.0])
+FORCE_STATES = [6, 7]  # F_yf, F_yr
 
 
 def output_matrix(p: VehicleParameters) -> np.ndarray:
@@ -61,7 +62,7 @@ def design_point(
 
 
 def design_point_with_innovation(
-    p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning
+    p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning, force_noise: tuple[float, float] = (1.0, 1.0)
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(Phi, K, Gd, S) at speed u: z+ = z + K (y - C z); z_next = Phi z+ + Gd d; S = C P C' + R, the
     covariance of the innovation y - C z (what the tyre bank's likelihoods need).
@@ -77,7 +78,9 @@ def design_point_with_innovation(
     Bd[:8, :] = np.linalg.inv(descriptor(p).E)[:, FORCE_ROWS]
     Phi, Gd = zoh(Aa, Bd, dt)
     Q = np.zeros((N_X, N_X))
-    Q[:8, :8] = np.diag(tuning.process_noise * STATE_SCALE**2 * dt)
+    scale = STATE_SCALE.copy()
+    scale[FORCE_STATES] *= force_noise  # the tyre forces' freedom from the tyre model (front, rear)
+    Q[:8, :8] = np.diag(tuning.process_noise * scale**2 * dt)
     Q[TAU, TAU] = tuning.rider_torque_rate**2 * dt
     R = np.diag(
         [

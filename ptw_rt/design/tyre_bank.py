@@ -8,13 +8,20 @@ vehicle with its tyres scaled by each k of a log-spaced grid, at every grid spee
 innovation covariance S; the runtime (ptw_rt.core.tyre_bank) weighs the filters by the likelihood of
 their innovations.
 
+Each hypothesis also has a publishing filter: the same vehicle and measurements, its tyre forces' process
+noise scaled by `fusion_filter.published_force_noise` (front, rear), so the published forces and torque
+follow the measured a_y and yaw where the tyres leave the linear model (near the grip limit, a payload the
+file does not describe); the evidence keeps the model's tighter filters, which tell tyres apart.
+
 Tables (H hypotheses, G grid speeds; hypothesis-major, so rows h*G .. h*G+G-1 are hypothesis h):
   tb_scale (H,), tb_Phi (H*G, 9, 9), tb_K (H*G, 9, 5), tb_Gd (H*G, 9, 4), tb_Sinv (H*G, 5, 5),
-  tb_logdet (H*G, 1, 1) (log det S, as a 3-D table so it interpolates like the others).
+  tb_logdet (H*G, 1, 1) (log det S, as a 3-D table so it interpolates like the others),
+  tb_Phi_pub, tb_K_pub, tb_Gd_pub: the publishing filters'.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -37,6 +44,8 @@ def design_bank(
 ) -> dict[str, np.ndarray]:
     ks = scales(tuning)
     phi, gain, gd, sinv, logdet = [], [], [], [], []
+    phi_pub, gain_pub, gd_pub = [], [], []
+    published = kalman_tuning.published_force_noise
     for k in ks:
         pk = p.scaled(stiffness=float(k))
         for u in grid:
@@ -46,6 +55,10 @@ def design_bank(
             gd.append(Gd)
             sinv.append(np.linalg.inv(S))
             logdet.append(np.linalg.slogdet(S)[1])
+            Phi, K, Gd, _ = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning, published)
+            phi_pub.append(Phi)
+            gain_pub.append(K)
+            gd_pub.append(Gd)
     return {
         "tb_scale": ks,
         "tb_Phi": np.array(phi),
@@ -53,18 +66,24 @@ def design_bank(
         "tb_Gd": np.array(gd),
         "tb_Sinv": np.array(sinv),
         "tb_logdet": np.array(logdet).reshape(-1, 1, 1),
+        "tb_Phi_pub": np.array(phi_pub),
+        "tb_K_pub": np.array(gain_pub),
+        "tb_Gd_pub": np.array(gd_pub),
     }
 
 
 def bank_spectral_radii(data, grid: np.ndarray, between: int) -> tuple[float, float]:
-    """Worst spectral radius of every hypothesis' error dynamics at the grid speeds and `between` speeds
-    inside each interval (linear interpolation, as the runtime does)."""
+    """Worst spectral radius of every hypothesis' error dynamics (its evidence filter's and its publishing
+    filter's) at the grid speeds and `between` speeds inside each interval (linear interpolation, as the
+    runtime does)."""
     G = len(grid)
     C = data.kf_C
     at_grid, inside = 0.0, 0.0
-    for h in range(len(data.tb_scale)):
+    for h, tables in itertools.product(
+        range(len(data.tb_scale)), ((data.tb_Phi, data.tb_K), (data.tb_Phi_pub, data.tb_K_pub))
+    ):
         block = slice(h * G, (h + 1) * G)
-        Phi, K = data.tb_Phi[block], data.tb_K[block]
+        Phi, K = tables[0][block], tables[1][block]
         for i in range(G):
             at_grid = max(at_grid, _rho(kalman.error_dynamics(Phi[i], K[i], C)))
         for i in range(G - 1):
