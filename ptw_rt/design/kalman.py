@@ -65,7 +65,9 @@ def design_point_with_innovation(
     p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning, force_noise: tuple[float, float] = (1.0, 1.0)
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(Phi, K, Gd, S) at speed u: z+ = z + K (y - C z); z_next = Phi z+ + Gd d; S = C P C' + R, the
-    covariance of the innovation y - C z (what the tyre bank's likelihoods need).
+    covariance of the innovation y - C z (what the tyre bank's likelihoods need). `force_noise` scales the
+    front and rear tyre forces' process noise (their typical magnitude): the tyre bank's publishing filters
+    (`fusion_filter.published_force_noise`) let the forces stray further from the tyre model.
 
     d are the generalised forces by which the nonlinear vehicle differs from the linear model on the
     lateral, yaw, roll and steer rows (`ptw_rt.core.kalman.nonlinear_correction`), held over the step:
