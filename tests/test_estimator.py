@@ -192,6 +192,33 @@ def test_learned_stiffness_survives_reset(estimator_factory):
     assert est.learned_tyre_scale() == pytest.approx((0.9 * 1.1 * 0.95 * 1.05) ** 0.25)
 
 
+def test_a_reset_keeps_the_tyre_evidence_whole_and_restarts_every_filter():
+    """After a ride, `Estimator.reset` (a log's time discontinuity) re-initialises every filter of the tyre bank,
+    evidence and publishing ones, and leaves the evidence as it was: a loop over the bank's laid-out maximum of
+    hypotheses had zeroed entries of the log-likelihoods, priors and the most likely hypothesis of the design's
+    smaller bank, and left publishing filters running on old states."""
+    from ptw_rt.apps.bench import _riding_frames
+    from ptw_rt.core import kalman as kf
+    from ptw_rt.core import lateral as lat
+    from ptw_rt.core import tyre_bank as tb
+    from ptw_rt.edge.cycle import build_runner, drive_log
+    from ptw_rt.paths import DEFAULT_CONFIG
+
+    ride, frames = _riding_frames(30.0)
+    runner = build_runner(DEFAULT_CONFIG)
+    drive_log(frames, runner, lambda now, e: None, start=ride.epoch)
+    est = runner.estimator
+    H = int(est.params["lateral"][lat.P_BANK + tb.B_COUNT])
+    bank = est.states["lateral"][lat.ST_BANK : lat.ST_BANK + tb.state_size(lat.MAX_HYPOTHESES)]
+    before = bank.copy()
+    est.reset()
+    inits = [first + h * tb.BLOCK + kf.INIT for first in (0, tb._published0(H)) for h in range(H)]
+    assert (bank[inits] == 0.0).all()
+    untouched = np.ones(bank.size, dtype=bool)
+    untouched[inits] = False
+    np.testing.assert_array_equal(bank[untouched], before[untouched])
+
+
 def test_stiffness_is_not_published_valid_while_the_observer_does_not_fit(estimator_factory):
     """Restored and excited, but a lateral acceleration no tyre explains: no valid bit; the tyre estimate is not
     dragged (no filter explains it, the evidence is flat) and seed 001's adaptation stays frozen."""

@@ -64,7 +64,7 @@ def test_standstill_reads_the_gyro_biases(settings, design):
     assert b.outputs[att.OUT_BR] == pytest.approx(0.003, abs=2e-4)
     assert b.outputs[att.OUT_ROLL_RATE] == pytest.approx(0.0, abs=2e-4)
     # a restart (Estimator.reset) keeps the biases
-    att.STAGE.reset_state(b.state)
+    att.STAGE.reset_state(b.state, b.params)
     att.attitude_stage(b.state, b.params, b.outputs, _inputs(0.004, -0.002, 0.003, 0.0, -G), speed)
     assert b.outputs[att.OUT_BP] == pytest.approx(0.004, abs=2e-4)
 

@@ -107,7 +107,7 @@ def test_the_steer_zero_is_learned_riding_straight(learner):
     assert out[cnd.OUT_STEER_ZERO_SHIFT] == pytest.approx(COUNT, rel=0.01)
     assert out[cnd.OUT_STEER] == pytest.approx(0.0, abs=0.01 * COUNT)
     # a restart of the estimator keeps the calibration
-    cnd.STAGE.reset_state(learner.state)
+    cnd.STAGE.reset_state(learner.state, learner.params)
     assert learner.state[cnd.ST_STEER_ZERO_SHIFT] == pytest.approx(COUNT, rel=0.01)
 
 

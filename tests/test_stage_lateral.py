@@ -101,5 +101,5 @@ def test_the_tyre_evidence_count_fades_with_the_banks_memories(settings, design)
     for _ in range(int(round(30.0 / dt))):
         faded = lat._count_evidence(st, b.params, False)
     assert faded == pytest.approx(count * np.exp(-30.0 / tun.idle_memory), rel=1e-3)
-    lat.reset(st)
+    lat.reset(st, b.params)
     assert st[lat.ST_TYRE_EVIDENCE] == 0.0

@@ -81,7 +81,7 @@ def test_reset_keeps_the_learned_values(settings, design):
     for k in range(50):
         _step(b, _turning(k))
     before = stf.learned(b.state, design)
-    stf.STAGE.reset_state(b.state)
+    stf.STAGE.reset_state(b.state, b.params)
     np.testing.assert_array_equal(stf.learned(b.state, design), before)
     assert b.state[stf.ST_RESTORED] == 1.0 and b.state[stf.ST_AD + ad.INIT] == 0.0
     with pytest.raises(ValueError):

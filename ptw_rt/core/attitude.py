@@ -794,6 +794,6 @@ STAGE = Stage(
     params=PARAMS,
     outputs=OUTPUTS,
     build_params=build_params,
-    reset=restart,  # roll and heading again from the data; the sensor biases are kept
+    reset=lambda state, params: restart(state),  # roll and heading again from the data; the sensor biases are kept
     doc="kinematic EKF: roll, heading, gyro and accelerometer biases, sideslip; standstill and GPS course",
 )

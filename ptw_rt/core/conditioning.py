@@ -313,6 +313,6 @@ STAGE = Stage(
     params=PARAMS,
     outputs=OUTPUTS,
     build_params=build_params,
-    reset=restart,
+    reset=lambda state, params: restart(state),
     doc="steer angle, roll/yaw rates and their derivatives, a_y at the CoM, observers on/off, the published roll",
 )

@@ -285,7 +285,7 @@ class Estimator:
     def reset(self) -> None:
         """Forget everything but the learned stiffness and the sensor biases (each stage's `reset`)."""
         for stage in STAGES:
-            stage.reset_state(self.states[stage.name])
+            stage.reset_state(self.states[stage.name], self.params[stage.name])
             self.outputs[stage.name][:] = 0.0
 
     def step(self, sample: np.ndarray, estimates: np.ndarray) -> None:

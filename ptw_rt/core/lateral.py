@@ -342,14 +342,14 @@ def _bank_params(prm: np.ndarray) -> np.ndarray:
     return prm[P_BANK : P_BANK + tb.PARAM_SIZE]
 
 
-def reset(st: np.ndarray) -> None:
+def reset(st: np.ndarray, prm: np.ndarray) -> None:
     """Forget the dynamic states; keep what the bank learned (its evidence and prior). The count of learning
-    behind the estimate starts again: after a restart the tyres are valid again only on new learning."""
+    behind the estimate starts again: after a restart the tyres are valid again only on new learning. The bank's
+    layout depends on its number of hypotheses (the design's), so its own restart re-initialises its filters
+    (a loop over the laid-out maximum wrote into the evidence of a smaller bank)."""
     st[ST_RUN_TIME] = 0.0
     st[ST_TYRE_EVIDENCE] = 0.0
-    bank = _bank(st)
-    for h in range(MAX_HYPOTHESES):
-        bank[h * tb.BLOCK + kf.INIT] = 0.0
+    tb.restart_filters(_bank(st), _bank_params(prm))
 
 
 def set_prior(st: np.ndarray, prm: np.ndarray, scales: np.ndarray, centre: float, restored: bool) -> None:

@@ -126,7 +126,8 @@ class Stage:
     table that is not in the design file (an array, or a function of the design that makes it).
     ``new_state(settings, design)``: the initial state (default zeros of the layout; a stage whose state size
     depends on the config makes its own, at least ``state.size`` long).
-    ``reset(state)``: what ``Estimator.reset`` does to it (default: all zero).
+    ``reset(state, params)``: what ``Estimator.reset`` does to its state (default: all zero); the parameters say
+    how the state is laid out where that depends on the design (the tyre bank's hypotheses).
     """
 
     name: str
@@ -137,7 +138,7 @@ class Stage:
     tables: tuple[tuple[str, int], ...] = ()
     constants: Mapping[str, np.ndarray | Callable[..., np.ndarray]] = field(default_factory=dict)
     new_state: Callable[..., np.ndarray] | None = None
-    reset: Callable[[np.ndarray], None] | None = None
+    reset: Callable[[np.ndarray, np.ndarray], None] | None = None
     doc: str = ""
 
     def initial_state(self, settings, design) -> np.ndarray:
@@ -178,11 +179,11 @@ class Stage:
             tindex,
         )
 
-    def reset_state(self, state: np.ndarray) -> None:
+    def reset_state(self, state: np.ndarray, params: np.ndarray) -> None:
         if self.reset is None:
             state[:] = 0.0
         else:
-            self.reset(state)
+            self.reset(state, params)
 
 
 def pack(arrays) -> tuple[np.ndarray, np.ndarray]:

@@ -303,6 +303,6 @@ STAGE = Stage(
     outputs=OUTPUTS,
     build_params=build_params,
     tables=TABLES,
-    reset=reset,
+    reset=lambda state, params: reset(state),
     doc="seed 001's LPV adaptive observer: the four tyre stiffnesses, frozen when unexcited or inconsistent",
 )
