@@ -54,7 +54,8 @@ def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0):
 
 
 def _run(bank, Y, start: float = 1.0, half_width: int | None = None, learn: bool = True, published=None):
-    """The bank over Y; `published`: the publishing filters' tables (default: the design's)."""
+    """The bank over Y: (scale, log sd, NIS) per cycle, the last outputs, the published states per cycle;
+    `published`: the publishing filters' tables (default: the design's)."""
     s, tuning, grid, t = bank
     pub = published if published is not None else (t["tb_Phi_pub"], t["tb_K_pub"], t["tb_Gd_pub"])
     if half_width is not None:
@@ -76,14 +77,12 @@ def _run(bank, Y, start: float = 1.0, half_width: int | None = None, learn: bool
         )  # fmt: skip
         trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS]
         states[k] = out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]
-    if published is not None:
-        return trace, out, states
-    return trace, out
+    return trace, out, states
 
 
 @pytest.mark.parametrize("k_true", [0.769, 1.0, 1.3])
 def test_finds_the_tyres_of_an_excited_ride(bank, k_true):
-    trace, out = _run(bank, _ride(bank[0], k_true, 30.0, excite=True))
+    trace, out, _ = _run(bank, _ride(bank[0], k_true, 30.0, excite=True))
     assert out[tb.OUT_MAP_SCALE] == pytest.approx(k_true, rel=0.01)
     assert out[tb.OUT_SCALE] == pytest.approx(k_true, rel=0.05)
     assert out[tb.OUT_LOG_SD] < 0.05  # concentrated
@@ -91,7 +90,7 @@ def test_finds_the_tyres_of_an_excited_ride(bank, k_true):
 
 
 def test_converges_from_a_wrong_start(bank):
-    trace, _ = _run(bank, _ride(bank[0], 1.0, 30.0, excite=True, seed=3), start=1.3)
+    trace, _, _ = _run(bank, _ride(bank[0], 1.0, 30.0, excite=True, seed=3), start=1.3)
     outside = np.flatnonzero(np.abs(trace[:, 0] / 1.0 - 1.0) > 0.10)
     settled_from = (outside[-1] + 1) * DT if outside.size else 0.0  # within 10 % from here to the end
     assert settled_from <= 10.0
@@ -99,7 +98,7 @@ def test_converges_from_a_wrong_start(bank):
 
 def test_claims_nothing_without_excitation(bank):
     """A straight road (no torque, no steering): the data cannot tell tyres apart; the spread stays wide."""
-    trace, out = _run(bank, _ride(bank[0], 0.769, 30.0, excite=False))
+    trace, out, _ = _run(bank, _ride(bank[0], 0.769, 30.0, excite=False))
     assert out[tb.OUT_LOG_SD] > 0.15
     assert np.all(trace[:, 1] > 0.15)
 
@@ -108,7 +107,7 @@ def test_mixture_is_a_filter_estimate(bank):
     """The published states (the posterior mixture) equal the true hypothesis' filter once it wins."""
     s = bank[0]
     Y = _ride(s, 1.0, 20.0, excite=True, seed=5)
-    _, out = _run(bank, Y)
+    _, out, _ = _run(bank, Y)
     assert np.all(np.isfinite(out))
     assert abs(out[tb.OUT_Z + ck.PHI] - Y[-1, 4]) < 0.01
 
@@ -118,8 +117,8 @@ def test_running_window_walks_to_far_tyres(bank):
     the window follows the evidence to the true tyres, and the hypotheses that join it start from their
     neighbour's state (nothing non-finite, the estimate settles as the full bank's does)."""
     Y = _ride(bank[0], 1.3, 40.0, excite=True, seed=7)
-    trace, out = _run(bank, Y, start=0.7, half_width=1)
-    full, out_full = _run(bank, Y, start=0.7)
+    trace, out, _ = _run(bank, Y, start=0.7, half_width=1)
+    full, out_full, _ = _run(bank, Y, start=0.7)
     assert np.all(np.isfinite(trace))
     assert out[tb.OUT_MAP_SCALE] == pytest.approx(1.3, rel=0.1)
     assert out[tb.OUT_SCALE] == pytest.approx(out_full[tb.OUT_SCALE], rel=0.02)
@@ -136,7 +135,7 @@ def test_operating_tyres_follow_where_the_small_slip_stiffness_may_not_learn(ban
     """Beyond the linear range (learn off, track on: a deep corner) the published states run on the tyres the
     data say the vehicle has now (the operating posterior), while the published small-slip stiffness keeps
     what it learned (here: its prior, nominal)."""
-    trace, out = _run(bank, _ride(bank[0], 0.769, 30.0, excite=True), learn=False)
+    trace, out, _ = _run(bank, _ride(bank[0], 0.769, 30.0, excite=True), learn=False)
     assert out[tb.OUT_OPERATING_SCALE] == pytest.approx(0.769, rel=0.05)
     assert out[tb.OUT_SCALE] == pytest.approx(1.0, rel=0.02)
     assert out[tb.OUT_LOG_SD] > 0.15  # and claims nothing
@@ -161,7 +160,7 @@ def test_sub_grid_peak_interpolates_a_narrow_posterior():
 def test_tyres_between_hypotheses_are_not_snapped_to_one(bank):
     """x1.14 lies between the x1.0 and x1.3 hypotheses of the test bank: the estimate lands between them, not on
     the nearest (a collapsed posterior's mean would read 1.0 or 1.3, 12-14 % off)."""
-    trace, out = _run(bank, _ride(bank[0], 1.14, 40.0, excite=True, seed=5))
+    trace, out, _ = _run(bank, _ride(bank[0], 1.14, 40.0, excite=True, seed=5))
     assert out[tb.OUT_LOG_SD] < 0.05
     assert out[tb.OUT_SCALE] == pytest.approx(1.14, rel=0.06)
     assert not math.isclose(out[tb.OUT_SCALE], out[tb.OUT_MAP_SCALE], rel_tol=0.02)
