@@ -21,7 +21,6 @@ Tables (H hypotheses, G grid speeds; hypothesis-major, so rows h*G .. h*G+G-1 ar
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import numpy as np
@@ -79,18 +78,16 @@ def bank_spectral_radii(data, grid: np.ndarray, between: int) -> tuple[float, fl
     G = len(grid)
     C = data.kf_C
     at_grid, inside = 0.0, 0.0
-    for h, tables in itertools.product(
-        range(len(data.tb_scale)), ((data.tb_Phi, data.tb_K), (data.tb_Phi_pub, data.tb_K_pub))
-    ):
-        block = slice(h * G, (h + 1) * G)
-        Phi, K = tables[0][block], tables[1][block]
-        for i in range(G):
-            at_grid = max(at_grid, _rho(kalman.error_dynamics(Phi[i], K[i], C)))
-        for i in range(G - 1):
-            for w in np.linspace(0.0, 1.0, between + 2)[1:-1]:
-                Pw = (1 - w) * Phi[i] + w * Phi[i + 1]
-                Kw = (1 - w) * K[i] + w * K[i + 1]
-                inside = max(inside, _rho(kalman.error_dynamics(Pw, Kw, C)))
+    for Phi_all, K_all in ((data.tb_Phi, data.tb_K), (data.tb_Phi_pub, data.tb_K_pub)):
+        for h in range(len(data.tb_scale)):
+            Phi, K = Phi_all[h * G : (h + 1) * G], K_all[h * G : (h + 1) * G]
+            for i in range(G):
+                at_grid = max(at_grid, _rho(kalman.error_dynamics(Phi[i], K[i], C)))
+            for i in range(G - 1):
+                for w in np.linspace(0.0, 1.0, between + 2)[1:-1]:
+                    Pw = (1 - w) * Phi[i] + w * Phi[i + 1]
+                    Kw = (1 - w) * K[i] + w * K[i + 1]
+                    inside = max(inside, _rho(kalman.error_dynamics(Pw, Kw, C)))
     return at_grid, inside
 
 
