@@ -111,6 +111,10 @@ TYRE_BANK_SCHEMA = Section(
         # no evidence about the tyres while even the best-fitting filter's short-window NIS (expected 5) is above
         # this: data no tyre explains (a faulty sensor within its range) would drag the estimate
         "max_evidence_nis_fast": (Number("", gt=0), 25.0),
+        # no hypothesis is held more than this (log-likelihood, nats) behind the best one: the most evidence a new
+        # road needs to bring back a tyre the old road ruled out (mu_drop on seeds 0/3/5/7/11/13: followed within
+        # 10 s on 25 of 30 rides at 30, 22 at 50; docs/estimator.md, "Memory")
+        "evidence_floor": (Number("", ge=5, le=200), 30.0),
     },
 )
 
@@ -359,6 +363,7 @@ class TyreBankTuning:
     min_excitation_yaw_rate: float
     running_half_width: int
     max_evidence_nis_fast: float
+    evidence_floor: float
 
 
 @dataclass(frozen=True)

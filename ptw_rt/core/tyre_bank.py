@@ -58,7 +58,7 @@ B_LEARN_FORGET = 1  # per-cycle factor of the evidence while learning
 B_IDLE_FORGET = 2  # per-cycle factor while not learning
 B_PRIOR_SD = 3  # sd of log k of the prior around the start value
 B_NIS_ALPHA = 4  # share of each cycle's NIS in the windowed mean
-B_FLOOR = 5  # log-likelihoods are kept within this of the best (a hypothesis can always come back)
+B_FLOOR = 5  # log-likelihoods are kept within this of the best (a hypothesis can always come back: a road changes)
 B_NIS_FAST_ALPHA = 6  # the same over a short window: a sudden change of road shows here first
 B_EXCITATION_ALPHA = 7  # share of each cycle in the mean squares of a_y and yaw rate (excitation)
 B_MIN_AY = 8  # m/s^2: RMS lateral acceleration above which the ride tells tyres apart ...
@@ -163,7 +163,7 @@ def bank_params(count: int, dt: float, tuning) -> np.ndarray:
     prm[B_IDLE_FORGET] = math.exp(-dt / tuning.idle_memory)
     prm[B_PRIOR_SD] = tuning.prior_sd
     prm[B_NIS_ALPHA] = 1.0 - math.exp(-dt / tuning.consistency_window)
-    prm[B_FLOOR] = 50.0
+    prm[B_FLOOR] = tuning.evidence_floor
     prm[B_NIS_FAST_ALPHA] = 1.0 - math.exp(-dt / tuning.fast_consistency_window)
     prm[B_EXCITATION_ALPHA] = 1.0 - math.exp(-dt / tuning.excitation_window)
     prm[B_MIN_AY] = tuning.min_excitation_lateral_accel
