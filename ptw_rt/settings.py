@@ -36,9 +36,15 @@ ATTITUDE_SCHEMA = Section(
         "sideslip_accel_noise": (Number("m/s^2/sqrt(s)", gt=0), 2.0),
         "sideslip_accel_time": (Number("s", gt=0), 0.5),
         "sideslip_time": (Number("s", gt=0), 5.0),
+        # near the grip limit the sideslip moves faster: the drive of dv_y/dt grows as sqrt(1 + (u r / this)^2)
+        "sideslip_accel_noise_ref": (Number("m/s^2", gt=0), 1.5),
         "lateral_accel_noise": (Number("m/s^2", gt=0), 0.3),
         "pitch_rate_noise": (Number("rad/s", gt=0), 0.01),
         "course_noise_deg": (Number("deg", gt=0), 0.5),
+        # a long hard corner's steady sideslip (no tyre model here to tell it from heading) enters the course
+        # as noise: this many rad per m/s^2 of lateral acceleration u r beyond the dead zone
+        "course_sideslip_per_accel": (Number("rad/(m/s^2)", ge=0, le=0.1), 0.015),
+        "course_sideslip_dead_zone": (Number("m/s^2", ge=0), 3.0),
         "course_min_speed": (Number("m/s", gt=0), 3.0),
         "innovation_gate": (Number("", gt=1), 5.0),
         "standstill_rate_noise": (Number("rad/s", gt=0), 0.003),
@@ -70,6 +76,9 @@ PLAUSIBILITY_SCHEMA = Section(
         # the two torques' disagreement that lag alone makes: a threshold sqrt(residual^2 + (lag x RMS of the
         # published torque's rate)^2), so a busy rider's quick torque is not a fault (docs/estimator.md)
         "lag": (Number("s", ge=0, le=1), 0.1),
+        # the residual is not taken while the most likely tyre filter's short-window NIS (expected 5) is above
+        # this: both torques come from linear-tyre models, and a slide makes them disagree whatever the sensors
+        "model_max_nis_fast": (Number("", gt=0), 25.0),
     },
 )
 
@@ -109,8 +118,9 @@ TYRE_BANK_SCHEMA = Section(
         # follows the estimate; the bank's cost is per running filter)
         "running_half_width": (Number("", integer=True, ge=1, le=64), 3),
         # no evidence about the tyres while even the best-fitting filter's short-window NIS (expected 5) is above
-        # this: data no tyre explains (a faulty sensor within its range) would drag the estimate
-        "max_evidence_nis_fast": (Number("", gt=0), 25.0),
+        # this: data no tyre explains (a faulty sensor within its range, the filters still catching up after a
+        # lean beyond the tyres' linear range) would drag the estimate (25 before 2026-11-26, docs/estimator.md)
+        "max_evidence_nis_fast": (Number("", gt=0), 10.0),
         # no hypothesis is held more than this (log-likelihood, nats) behind the best one: the most evidence a new
         # road needs to bring back a tyre the old road ruled out (mu_drop on seeds 0/3/5/7/11/13: followed within
         # 10 s on 25 of 30 rides at 30, 22 at 50; docs/estimator.md, "Memory")
@@ -375,6 +385,7 @@ class PlausibilityTuning:
     torque_residual_nm: tuple[float, ...]
     hold: float
     lag: float
+    model_max_nis_fast: float
 
     def __post_init__(self) -> None:
         starts = self.band_start_kmh
@@ -398,9 +409,12 @@ class AttitudeTuning:
     sideslip_accel_noise: float
     sideslip_accel_time: float
     sideslip_time: float
+    sideslip_accel_noise_ref: float
     lateral_accel_noise: float
     pitch_rate_noise: float
     course_noise_deg: float
+    course_sideslip_per_accel: float
+    course_sideslip_dead_zone: float
     course_min_speed: float
     innovation_gate: float
     standstill_rate_noise: float

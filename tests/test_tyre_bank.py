@@ -229,13 +229,17 @@ def test_the_published_torque_near_the_grip_limit_is_within_15_percent_of_the_pe
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("seed", "perturbation"), [(None, "stiffness=1.3"), (7, "added_mass=50")])
+@pytest.mark.parametrize(
+    ("seed", "perturbation"), [(None, "stiffness=1.3"), (None, "stiffness=0.7"), (7, "added_mass=50")]
+)
 def test_a_changed_road_is_followed_within_10_s(seed, perturbation):
     """`mu_drop`: the road's friction falls from 0.9 to 0.5 at 20 s, and the small-slip stiffness with it.
     Learning waits for the tyres' linear range, and these riders stay beyond it for most of the seconds after
     the drop, so the new road's evidence comes in short bursts. With the old road's hypotheses held up to 50
     nats ahead (the floor before `evidence_floor`), the ×1.3 ride followed after 13.96 s and seed 7's +50 kg
-    one after 18.1 s (issue #12: within 10 s)."""
+    one after 18.1 s (issue #12: within 10 s). The ×0.7 ride is the one a burst of learning right after a deep
+    lean (the filters still catching up, their short-window NIS 20) threw 13 % off for a cycle, 38 s in, with the
+    evidence gate at a NIS of 25 and the attitude filter of 2026-11-26 (`max_evidence_nis_fast`)."""
     from ptw_rt.eval.evaluate import evaluate_ride
     from ptw_rt.eval.matrix import MU_DROP_AT, learning_times
     from ptw_rt.sim.ride import parse_perturbations, simulate

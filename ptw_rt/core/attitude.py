@@ -114,6 +114,9 @@ STATE = Layout(
 STATE_SIZE = STATE.size
 # rad/s: what a rate not measured this cycle (held, frozen or corrupt frames) may be, as far as the filter knows
 UNMEASURED_RATE_SD = 0.5
+# m/s^2: the most lateral acceleration u r a tyre can give (~1.2 g); what scales the sideslip's noise is bounded by
+# it, so a corrupt rate or speed cannot blow the covariance up
+MAX_LATERAL_ACCEL = 12.0
 # The accelerometer's specific force is trusted for the lateral-force and the gravity constraints only while its
 # magnitude is one a riding vehicle has (braking at 1 g beside gravity is 1.4 g; a pothole's spike is not a
 # measurement of the lean): outside, that cycle's accelerometer is not used (a garbage sample of 4 m/s^2 that
@@ -152,6 +155,9 @@ PARAMS = Layout(
     q_sideslip_accel=1,  # m/s^2/sqrt(s), drive of the Markov a_v
     sideslip_accel_time=1,  # s, correlation time of a_v
     sideslip_time=1,  # s, mean reversion of v_y
+    sideslip_accel_ref=1,  # m/s^2: a_v's drive grows as sqrt(1 + (u r / this)^2) (slides near the grip limit)
+    course_sideslip_per_accel=1,  # rad/(m/s^2): steady sideslip taken as course noise, per u r beyond ...
+    course_sideslip_dead_zone=1,  # m/s^2 ... this
     r_lateral=1,  # m/s^2, lateral specific-force noise (sensor + unmodelled)
     r_pitch_rate=1,  # rad/s, pitch rate of the chassis taken as noise
     r_course=1,  # rad, GPS course noise at speed
@@ -183,6 +189,9 @@ PARAMS = Layout(
     A_Q_SIDESLIP_ACCEL,
     A_SIDESLIP_ACCEL_TIME,
     A_SIDESLIP_TIME,
+    A_SIDESLIP_ACCEL_REF,
+    A_COURSE_SIDESLIP_PER_ACCEL,
+    A_COURSE_SIDESLIP_DEAD_ZONE,
     A_R_LATERAL,
     A_R_PITCH_RATE,
     A_R_COURSE,
@@ -283,6 +292,9 @@ def attitude_params(
     prm[A_Q_SIDESLIP_ACCEL] = tuning.sideslip_accel_noise
     prm[A_SIDESLIP_ACCEL_TIME] = tuning.sideslip_accel_time
     prm[A_SIDESLIP_TIME] = tuning.sideslip_time
+    prm[A_SIDESLIP_ACCEL_REF] = tuning.sideslip_accel_noise_ref
+    prm[A_COURSE_SIDESLIP_PER_ACCEL] = tuning.course_sideslip_per_accel
+    prm[A_COURSE_SIDESLIP_DEAD_ZONE] = tuning.course_sideslip_dead_zone
     prm[A_R_LATERAL] = tuning.lateral_accel_noise
     prm[A_R_PITCH_RATE] = tuning.pitch_rate_noise
     prm[A_R_COURSE] = math.radians(tuning.course_noise_deg)
@@ -539,7 +551,11 @@ def attitude_step(
             _clear_h(H)
             H[X_PSI] = 1.0
             H[X_VY] = 1.0 / u
-            if _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2, gate):
+            # in a long hard corner the vehicle slides steadily sideways (its rear slip angle); with no tyre model
+            # here that sideslip is indistinguishable from a heading error, so beyond the dead zone it is noise
+            a_lat = min(abs(u * prev[PREV_RG]), MAX_LATERAL_ACCEL)
+            beta_sd = prm[A_COURSE_SIDESLIP_PER_ACCEL] * max(a_lat - prm[A_COURSE_SIDESLIP_DEAD_ZONE], 0.0)
+            if _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2 + beta_sd**2, gate):
                 st[ST_COURSE_REJECTED] = 0.0
             else:
                 st[ST_COURSE_REJECTED] += 1.0
@@ -605,7 +621,9 @@ def attitude_step(
     P[X_BQ, X_BQ] += qb
     P[X_BR, X_BR] += qb
     P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
-    P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * dt
+    # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
+    lat_ratio = min(abs(u * rg1), MAX_LATERAL_ACCEL) / prm[A_SIDESLIP_ACCEL_REF]
+    P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * (1.0 + lat_ratio * lat_ratio) * dt
     P[X_VY, X_VY] += 1e-6 * dt
     # heading increments for the GPS latency (newest first)
     for k in range(MAX_LATENCY_CYCLES - 1, 0, -1):

@@ -214,7 +214,7 @@ def build_params(settings, design) -> np.ndarray:
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
-        model_max_nis_fast=est.tyre_bank.max_evidence_nis_fast,
+        model_max_nis_fast=est.plausibility.model_max_nis_fast,
         band_count=len(est.plausibility.band_start_kmh),
         band_start=_padded([v / 3.6 for v in est.plausibility.band_start_kmh]),
         band_threshold=_padded(est.plausibility.torque_residual_nm),
