@@ -79,6 +79,8 @@ PLAUSIBILITY_SCHEMA = Section(
         # the residual is not taken while the most likely tyre filter's short-window NIS (expected 5) is above
         # this: both torques come from linear-tyre models, and a slide makes them disagree whatever the sensors
         "model_max_nis_fast": (Number("", gt=0), 25.0),
+        # after an input fault the channels re-converge at their own pace: the residual waits this long
+        "resume_after": (Number("s", ge=0, le=30), 1.0),
     },
 )
 
@@ -386,6 +388,7 @@ class PlausibilityTuning:
     hold: float
     lag: float
     model_max_nis_fast: float
+    resume_after: float
 
     def __post_init__(self) -> None:
         starts = self.band_start_kmh

@@ -82,6 +82,7 @@ STATE = Layout(
     torque_ms=1,  # N^2 m^2: windowed mean square of published - UIHOSMO-on-sensors torque (plausibility)
     torque_rate_ms=1,  # N^2 m^2/s^2: ... of the published torque's rate (what lag alone turns into a residual)
     last_torque=1,  # N m: the published torque of the last cycle the monitor ran
+    sound_time=1,  # s since the input checks last flagged a cycle
     implausible_until=1,  # s: the plausibility alarm holds until this
     steer_residual=1,  # rad: running mean of steer - kinematic steer - the tyres' slip difference
     steer_slip=1,  # rad: running mean of the slip difference (what an error of the tyres' scale would scale)
@@ -96,6 +97,7 @@ STATE = Layout(
     ST_TORQUE_MS,
     ST_TORQUE_RATE_MS,
     ST_LAST_TORQUE,
+    ST_SOUND_TIME,
     ST_IMPLAUSIBLE_UNTIL,
     ST_STEER_RESIDUAL,
     ST_STEER_SLIP,
@@ -133,6 +135,7 @@ PARAMS = Layout(
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
     model_max_nis_fast=1,  # the torque residual is not taken while the tyre filters' short-window NIS is above this
+    plausibility_resume=1,  # s of sound inputs after an input fault before the torque residual is taken again
     band_count=1,  # speed bands of the threshold
     band_start=MAX_BANDS,  # m/s where each band starts (increasing, the first 0)
     band_threshold=MAX_BANDS,  # N m: RMS residual beyond which the torque is implausible, per band
@@ -163,6 +166,7 @@ PARAMS = Layout(
     P_PLAUSIBILITY_HOLD,
     P_PLAUSIBILITY_LAG,
     P_MODEL_MAX_NIS_FAST,
+    P_PLAUSIBILITY_RESUME,
     P_BAND_COUNT,
     P_BAND_START,
     P_BAND_THRESHOLD,
@@ -215,6 +219,7 @@ def build_params(settings, design) -> np.ndarray:
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
         model_max_nis_fast=est.plausibility.model_max_nis_fast,
+        plausibility_resume=est.plausibility.resume_after,
         band_count=len(est.plausibility.band_start_kmh),
         band_start=_padded([v / 3.6 for v in est.plausibility.band_start_kmh]),
         band_threshold=_padded(est.plausibility.torque_residual_nm),
@@ -281,7 +286,10 @@ def _plausibility(
     # both channels' torque comes from a linear-tyre model: while no tyre filter explains the data (a slide near
     # the grip limit) their disagreement says nothing about the sensors, so the window holds what it had
     model_holds = lateral[lat.OUT_TYRE_NIS_FAST] <= prm[P_MODEL_MAX_NIS_FAST]
-    compare = running and model_holds and sound
+    # after an input fault (corrupt, missing or held frames) the two channels re-converge at their own pace: a
+    # steer that jumps back after held frames is a step the UIHOSMO's differentiator turns into a torque spike
+    st[ST_SOUND_TIME] = st[ST_SOUND_TIME] + prm[P_DT] if sound else 0.0
+    compare = running and model_holds and sound and st[ST_SOUND_TIME] >= prm[P_PLAUSIBILITY_RESUME]
     band = 0
     for k in range(1, int(prm[P_BAND_COUNT])):
         if u >= prm[P_BAND_START + k]:
