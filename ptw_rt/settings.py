@@ -36,15 +36,16 @@ ATTITUDE_SCHEMA = Section(
         "sideslip_accel_noise": (Number("m/s^2/sqrt(s)", gt=0), 2.0),
         "sideslip_accel_time": (Number("s", gt=0), 0.5),
         "sideslip_time": (Number("s", gt=0), 5.0),
-        # near the grip limit the sideslip moves faster: the drive of dv_y/dt grows as sqrt(1 + (u r / this)^2)
-        "sideslip_accel_noise_ref": (Number("m/s^2", gt=0), 1.5),
+        # in a hard corner (lateral acceleration u r beyond `sideslip_dead_zone`) the sideslip moves faster near
+        # the grip limit: the drive of dv_y/dt grows as sqrt(1 + ((u r - dead zone) / this)^2)
+        "sideslip_accel_noise_ref": (Number("m/s^2", gt=0), 1.0),
+        "sideslip_dead_zone": (Number("m/s^2", ge=0), 3.0),
         "lateral_accel_noise": (Number("m/s^2", gt=0), 0.3),
         "pitch_rate_noise": (Number("rad/s", gt=0), 0.01),
         "course_noise_deg": (Number("deg", gt=0), 0.5),
         # a long hard corner's steady sideslip (no tyre model here to tell it from heading) enters the course
-        # as noise: this many rad per m/s^2 of lateral acceleration u r beyond the dead zone
+        # as noise: this many rad per m/s^2 of lateral acceleration u r beyond `sideslip_dead_zone`
         "course_sideslip_per_accel": (Number("rad/(m/s^2)", ge=0, le=0.1), 0.015),
-        "course_sideslip_dead_zone": (Number("m/s^2", ge=0), 3.0),
         "course_min_speed": (Number("m/s", gt=0), 3.0),
         "innovation_gate": (Number("", gt=1), 5.0),
         "standstill_rate_noise": (Number("rad/s", gt=0), 0.003),
@@ -416,11 +417,11 @@ class AttitudeTuning:
     sideslip_accel_time: float
     sideslip_time: float
     sideslip_accel_noise_ref: float
+    sideslip_dead_zone: float
     lateral_accel_noise: float
     pitch_rate_noise: float
     course_noise_deg: float
     course_sideslip_per_accel: float
-    course_sideslip_dead_zone: float
     course_min_speed: float
     innovation_gate: float
     standstill_rate_noise: float

@@ -155,9 +155,9 @@ PARAMS = Layout(
     q_sideslip_accel=1,  # m/s^2/sqrt(s), drive of the Markov a_v
     sideslip_accel_time=1,  # s, correlation time of a_v
     sideslip_time=1,  # s, mean reversion of v_y
-    sideslip_accel_ref=1,  # m/s^2: a_v's drive grows as sqrt(1 + (u r / this)^2) (slides near the grip limit)
-    course_sideslip_per_accel=1,  # rad/(m/s^2): steady sideslip taken as course noise, per u r beyond ...
-    course_sideslip_dead_zone=1,  # m/s^2 ... this
+    sideslip_accel_ref=1,  # m/s^2: a_v's drive grows as sqrt(1 + ((u r - dead zone) / this)^2) (slides near the limit)
+    sideslip_dead_zone=1,  # m/s^2 of u r below which the two hard-corner terms (this and the next) stay off
+    course_sideslip_per_accel=1,  # rad/(m/s^2): steady sideslip taken as course noise, per u r beyond the dead zone
     r_lateral=1,  # m/s^2, lateral specific-force noise (sensor + unmodelled)
     r_pitch_rate=1,  # rad/s, pitch rate of the chassis taken as noise
     r_course=1,  # rad, GPS course noise at speed
@@ -190,8 +190,8 @@ PARAMS = Layout(
     A_SIDESLIP_ACCEL_TIME,
     A_SIDESLIP_TIME,
     A_SIDESLIP_ACCEL_REF,
+    A_SIDESLIP_DEAD_ZONE,
     A_COURSE_SIDESLIP_PER_ACCEL,
-    A_COURSE_SIDESLIP_DEAD_ZONE,
     A_R_LATERAL,
     A_R_PITCH_RATE,
     A_R_COURSE,
@@ -293,8 +293,8 @@ def attitude_params(
     prm[A_SIDESLIP_ACCEL_TIME] = tuning.sideslip_accel_time
     prm[A_SIDESLIP_TIME] = tuning.sideslip_time
     prm[A_SIDESLIP_ACCEL_REF] = tuning.sideslip_accel_noise_ref
+    prm[A_SIDESLIP_DEAD_ZONE] = tuning.sideslip_dead_zone
     prm[A_COURSE_SIDESLIP_PER_ACCEL] = tuning.course_sideslip_per_accel
-    prm[A_COURSE_SIDESLIP_DEAD_ZONE] = tuning.course_sideslip_dead_zone
     prm[A_R_LATERAL] = tuning.lateral_accel_noise
     prm[A_R_PITCH_RATE] = tuning.pitch_rate_noise
     prm[A_R_COURSE] = math.radians(tuning.course_noise_deg)
@@ -554,7 +554,7 @@ def attitude_step(
             # in a long hard corner the vehicle slides steadily sideways (its rear slip angle); with no tyre model
             # here that sideslip is indistinguishable from a heading error, so beyond the dead zone it is noise
             a_lat = min(abs(u * prev[PREV_RG]), MAX_LATERAL_ACCEL)
-            beta_sd = prm[A_COURSE_SIDESLIP_PER_ACCEL] * max(a_lat - prm[A_COURSE_SIDESLIP_DEAD_ZONE], 0.0)
+            beta_sd = prm[A_COURSE_SIDESLIP_PER_ACCEL] * max(a_lat - prm[A_SIDESLIP_DEAD_ZONE], 0.0)
             if _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2 + beta_sd**2, gate):
                 st[ST_COURSE_REJECTED] = 0.0
             else:
@@ -622,7 +622,7 @@ def attitude_step(
     P[X_BR, X_BR] += qb
     P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
-    lat_ratio = min(abs(u * rg1), MAX_LATERAL_ACCEL) / prm[A_SIDESLIP_ACCEL_REF]
+    lat_ratio = max(min(abs(u * rg1), MAX_LATERAL_ACCEL) - prm[A_SIDESLIP_DEAD_ZONE], 0.0) / prm[A_SIDESLIP_ACCEL_REF]
     P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * (1.0 + lat_ratio * lat_ratio) * dt
     P[X_VY, X_VY] += 1e-6 * dt
     # heading increments for the GPS latency (newest first)
