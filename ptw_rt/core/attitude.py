@@ -408,6 +408,14 @@ def restart(st: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _corner_accel(phi: float, g: float) -> float:
+    """How hard the corner is: the lateral acceleration g tan(roll) its lean balances, bounded at what a tyre can
+    give. From the filter's own roll, a state, not from the gyro times the speed: a burst of corrupt rates that the
+    input checks let through after 10 cycles must not open the sideslip's covariance (tests/test_estimator.py)."""
+    return min(g * abs(math.tan(phi)), MAX_LATERAL_ACCEL)
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def attitude_step(
     st: np.ndarray,
     out: np.ndarray,
@@ -553,7 +561,7 @@ def attitude_step(
             H[X_VY] = 1.0 / u
             # in a long hard corner the vehicle slides steadily sideways (its rear slip angle); with no tyre model
             # here that sideslip is indistinguishable from a heading error, so beyond the dead zone it is noise
-            a_lat = min(abs(u * prev[PREV_RG]), MAX_LATERAL_ACCEL)
+            a_lat = _corner_accel(x[X_PHI], g)
             beta_sd = prm[A_COURSE_SIDESLIP_PER_ACCEL] * max(a_lat - prm[A_SIDESLIP_DEAD_ZONE], 0.0)
             if _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2 + beta_sd**2, gate):
                 st[ST_COURSE_REJECTED] = 0.0
@@ -622,7 +630,7 @@ def attitude_step(
     P[X_BR, X_BR] += qb
     P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
-    lat_ratio = max(min(abs(u * rg1), MAX_LATERAL_ACCEL) - prm[A_SIDESLIP_DEAD_ZONE], 0.0) / prm[A_SIDESLIP_ACCEL_REF]
+    lat_ratio = max(_corner_accel(x[X_PHI], g) - prm[A_SIDESLIP_DEAD_ZONE], 0.0) / prm[A_SIDESLIP_ACCEL_REF]
     P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * (1.0 + lat_ratio * lat_ratio) * dt
     P[X_VY, X_VY] += 1e-6 * dt
     # heading increments for the GPS latency (newest first)
