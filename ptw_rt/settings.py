@@ -36,15 +36,15 @@ ATTITUDE_SCHEMA = Section(
         "sideslip_accel_noise": (Number("m/s^2/sqrt(s)", gt=0), 2.0),
         "sideslip_accel_time": (Number("s", gt=0), 0.5),
         "sideslip_time": (Number("s", gt=0), 5.0),
-        # in a hard corner (lateral acceleration u r beyond `sideslip_dead_zone`) the sideslip moves faster near
-        # the grip limit: the drive of dv_y/dt grows as sqrt(1 + ((u r - dead zone) / this)^2)
+        # in a hard corner (its lean balancing a lateral acceleration g tan(roll) beyond `sideslip_dead_zone`) the
+        # sideslip moves faster near the grip limit: the drive of dv_y/dt grows as sqrt(1 + (excess / this)^2)
         "sideslip_accel_noise_ref": (Number("m/s^2", gt=0), 1.0),
         "sideslip_dead_zone": (Number("m/s^2", ge=0), 3.0),
         "lateral_accel_noise": (Number("m/s^2", gt=0), 0.3),
         "pitch_rate_noise": (Number("rad/s", gt=0), 0.01),
         "course_noise_deg": (Number("deg", gt=0), 0.5),
         # a long hard corner's steady sideslip (no tyre model here to tell it from heading) enters the course
-        # as noise: this many rad per m/s^2 of lateral acceleration u r beyond `sideslip_dead_zone`
+        # as noise: this many rad per m/s^2 of g tan(roll) beyond `sideslip_dead_zone`
         "course_sideslip_per_accel": (Number("rad/(m/s^2)", ge=0, le=0.1), 0.015),
         "course_min_speed": (Number("m/s", gt=0), 3.0),
         "innovation_gate": (Number("", gt=1), 5.0),
@@ -80,8 +80,6 @@ PLAUSIBILITY_SCHEMA = Section(
         # the residual is not taken while the most likely tyre filter's short-window NIS (expected 5) is above
         # this: both torques come from linear-tyre models, and a slide makes them disagree whatever the sensors
         "model_max_nis_fast": (Number("", gt=0), 25.0),
-        # after an input fault the channels re-converge at their own pace: the residual waits this long
-        "resume_after": (Number("s", ge=0, le=30), 1.0),
     },
 )
 
@@ -392,7 +390,6 @@ class PlausibilityTuning:
     hold: float
     lag: float
     model_max_nis_fast: float
-    resume_after: float
 
     def __post_init__(self) -> None:
         starts = self.band_start_kmh

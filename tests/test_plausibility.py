@@ -116,7 +116,7 @@ def test_corrupt_frames_are_the_input_checks_business_not_the_torque_monitors(se
     restarting the filters' clock). It now compares only on sound cycles, like the steer check. Seeds 21 and 33:
     once the corrupt frames end, the steer comes back with a step of ~3 deg that the UIHOSMO's differentiator turns
     into a torque spike; compared at once, that raised 187 / 157 cycles of alarm 0.4 s after the fault. The
-    residual now waits `plausibility.resume_after` (1 s) of sound inputs."""
+    residual now waits while the input fault's reason is held (`supervisor.reason_hold_time`, 1 s)."""
     ev = evaluate_ride(simulate("sensor_faults", seed=seed))
     assert ev.result["alarms"]["plausibility"]["cycles"] == 0
 

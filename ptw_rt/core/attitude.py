@@ -114,8 +114,8 @@ STATE = Layout(
 STATE_SIZE = STATE.size
 # rad/s: what a rate not measured this cycle (held, frozen or corrupt frames) may be, as far as the filter knows
 UNMEASURED_RATE_SD = 0.5
-# m/s^2: the most lateral acceleration u r a tyre can give (~1.2 g); what scales the sideslip's noise is bounded by
-# it, so a corrupt rate or speed cannot blow the covariance up
+# m/s^2: the most lateral acceleration a tyre can give (~1.2 g); what scales the sideslip's noise is bounded by it,
+# so no roll (near 90 deg, tan grows without bound) can blow the covariance up
 MAX_LATERAL_ACCEL = 12.0
 # The accelerometer's specific force is trusted for the lateral-force and the gravity constraints only while its
 # magnitude is one a riding vehicle has (braking at 1 g beside gravity is 1.4 g; a pothole's spike is not a
@@ -155,9 +155,9 @@ PARAMS = Layout(
     q_sideslip_accel=1,  # m/s^2/sqrt(s), drive of the Markov a_v
     sideslip_accel_time=1,  # s, correlation time of a_v
     sideslip_time=1,  # s, mean reversion of v_y
-    sideslip_accel_ref=1,  # m/s^2: a_v's drive grows as sqrt(1 + ((u r - dead zone) / this)^2) (slides near the limit)
-    sideslip_dead_zone=1,  # m/s^2 of u r below which the two hard-corner terms (this and the next) stay off
-    course_sideslip_per_accel=1,  # rad/(m/s^2): steady sideslip taken as course noise, per u r beyond the dead zone
+    sideslip_accel_ref=1,  # m/s^2: a_v's drive grows as sqrt(1 + (excess / this)^2) (slides near the grip limit)
+    sideslip_dead_zone=1,  # m/s^2 of g tan(roll) below which the two hard-corner terms stay off (`_corner_excess`)
+    course_sideslip_per_accel=1,  # rad/(m/s^2): steady sideslip taken as course noise, per m/s^2 of that excess
     r_lateral=1,  # m/s^2, lateral specific-force noise (sensor + unmodelled)
     r_pitch_rate=1,  # rad/s, pitch rate of the chassis taken as noise
     r_course=1,  # rad, GPS course noise at speed
@@ -408,11 +408,13 @@ def restart(st: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
-def _corner_accel(phi: float, g: float) -> float:
-    """How hard the corner is: the lateral acceleration g tan(roll) its lean balances, bounded at what a tyre can
-    give. From the filter's own roll, a state, not from the gyro times the speed: a burst of corrupt rates that the
-    input checks let through after 10 cycles must not open the sideslip's covariance (tests/test_estimator.py)."""
-    return min(g * abs(math.tan(phi)), MAX_LATERAL_ACCEL)
+def _corner_excess(phi: float, prm: np.ndarray) -> float:
+    """How much harder than `sideslip_dead_zone` the corner is [m/s^2]: the lateral acceleration g tan(roll) its
+    lean balances, bounded at what a tyre can give, less the dead zone (0 below it). From the filter's own roll, a
+    state, not from the gyro times the speed: a burst of corrupt rates that the input checks let through after 10
+    cycles must not open the sideslip's covariance (tests/test_estimator.py)."""
+    a_lat = min(prm[A_G] * abs(math.tan(phi)), MAX_LATERAL_ACCEL)
+    return max(a_lat - prm[A_SIDESLIP_DEAD_ZONE], 0.0)
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -561,8 +563,7 @@ def attitude_step(
             H[X_VY] = 1.0 / u
             # in a long hard corner the vehicle slides steadily sideways (its rear slip angle); with no tyre model
             # here that sideslip is indistinguishable from a heading error, so beyond the dead zone it is noise
-            a_lat = _corner_accel(x[X_PHI], g)
-            beta_sd = prm[A_COURSE_SIDESLIP_PER_ACCEL] * max(a_lat - prm[A_SIDESLIP_DEAD_ZONE], 0.0)
+            beta_sd = prm[A_COURSE_SIDESLIP_PER_ACCEL] * _corner_excess(x[X_PHI], prm)
             if _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2 + beta_sd**2, gate):
                 st[ST_COURSE_REJECTED] = 0.0
             else:
@@ -630,7 +631,7 @@ def attitude_step(
     P[X_BR, X_BR] += qb
     P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
-    lat_ratio = max(_corner_accel(x[X_PHI], g) - prm[A_SIDESLIP_DEAD_ZONE], 0.0) / prm[A_SIDESLIP_ACCEL_REF]
+    lat_ratio = _corner_excess(x[X_PHI], prm) / prm[A_SIDESLIP_ACCEL_REF]
     P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * (1.0 + lat_ratio * lat_ratio) * dt
     P[X_VY, X_VY] += 1e-6 * dt
     # heading increments for the GPS latency (newest first)

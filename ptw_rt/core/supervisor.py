@@ -82,7 +82,6 @@ STATE = Layout(
     torque_ms=1,  # N^2 m^2: windowed mean square of published - UIHOSMO-on-sensors torque (plausibility)
     torque_rate_ms=1,  # N^2 m^2/s^2: ... of the published torque's rate (what lag alone turns into a residual)
     last_torque=1,  # N m: the published torque of the last cycle the monitor ran
-    sound_time=1,  # s since the input checks last flagged a cycle
     implausible_until=1,  # s: the plausibility alarm holds until this
     steer_residual=1,  # rad: running mean of steer - kinematic steer - the tyres' slip difference
     steer_slip=1,  # rad: running mean of the slip difference (what an error of the tyres' scale would scale)
@@ -97,7 +96,6 @@ STATE = Layout(
     ST_TORQUE_MS,
     ST_TORQUE_RATE_MS,
     ST_LAST_TORQUE,
-    ST_SOUND_TIME,
     ST_IMPLAUSIBLE_UNTIL,
     ST_STEER_RESIDUAL,
     ST_STEER_SLIP,
@@ -135,7 +133,6 @@ PARAMS = Layout(
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
     model_max_nis_fast=1,  # the torque residual is not taken while the tyre filters' short-window NIS is above this
-    plausibility_resume=1,  # s of sound inputs after an input fault before the torque residual is taken again
     band_count=1,  # speed bands of the threshold
     band_start=MAX_BANDS,  # m/s where each band starts (increasing, the first 0)
     band_threshold=MAX_BANDS,  # N m: RMS residual beyond which the torque is implausible, per band
@@ -166,7 +163,6 @@ PARAMS = Layout(
     P_PLAUSIBILITY_HOLD,
     P_PLAUSIBILITY_LAG,
     P_MODEL_MAX_NIS_FAST,
-    P_PLAUSIBILITY_RESUME,
     P_BAND_COUNT,
     P_BAND_START,
     P_BAND_THRESHOLD,
@@ -219,7 +215,6 @@ def build_params(settings, design) -> np.ndarray:
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
         model_max_nis_fast=est.plausibility.model_max_nis_fast,
-        plausibility_resume=est.plausibility.resume_after,
         band_count=len(est.plausibility.band_start_kmh),
         band_start=_padded([v / 3.6 for v in est.plausibility.band_start_kmh]),
         band_threshold=_padded(est.plausibility.torque_residual_nm),
@@ -271,14 +266,16 @@ def _plausibility(
     diag: np.ndarray,
     lateral: np.ndarray,
     u: float,
-    sound: bool,
+    settled: bool,
 ) -> bool:
     """The plausibility monitor (docs/estimator.md, "Plausibility"): is the published rider torque (the tyre
     bank's fusion filters) contradicted by the UIHOSMO on the sensors (model inversion through steer'' with
     finite-time differentiators: a structurally different path)? The windowed RMS of their difference against
     the threshold of the speed band, learned from the evaluation matrix's healthy rides; the alarm is held
-    `plausibility_hold` after the residual is back. Compared only while both run and have settled, on ``sound``
-    inputs (none the input checks flagged this cycle) and while some tyre filter explains the data."""
+    `plausibility_hold` after the residual is back. Compared only while both run and have settled, while no input
+    fault is held (``settled``: none the input checks flagged within `reason_hold_time`: after corrupt, missing or
+    held frames the two channels re-converge at their own pace, and a steer that jumps back is a step the
+    UIHOSMO's differentiator turns into a torque spike) and while some tyre filter explains the data."""
     us = diag[dia.OUT_US : dia.OUT_US + cus.OUT_SIZE]
     running = (
         cond[cnd.OUT_RUN] != 0.0 and lateral[lat.OUT_RUN_TIME] >= prm[P_CONVERGE_TIME] and us[cus.OUT_VALID] != 0.0
@@ -286,10 +283,7 @@ def _plausibility(
     # both channels' torque comes from a linear-tyre model: while no tyre filter explains the data (a slide near
     # the grip limit) their disagreement says nothing about the sensors, so the window holds what it had
     model_holds = lateral[lat.OUT_TYRE_NIS_FAST] <= prm[P_MODEL_MAX_NIS_FAST]
-    # after an input fault (corrupt, missing or held frames) the two channels re-converge at their own pace: a
-    # steer that jumps back after held frames is a step the UIHOSMO's differentiator turns into a torque spike
-    st[ST_SOUND_TIME] = st[ST_SOUND_TIME] + prm[P_DT] if sound else 0.0
-    compare = running and model_holds and sound and st[ST_SOUND_TIME] >= prm[P_PLAUSIBILITY_RESUME]
+    compare = running and model_holds and settled
     band = 0
     for k in range(1, int(prm[P_BAND_COUNT])):
         if u >= prm[P_BAND_START + k]:
@@ -390,16 +384,19 @@ def supervisor_stage(
     _raise(st, (reasons_now | REASON_DIVERGING) if diverged else reasons_now, prm[P_REASON_HOLD])
     if attitude[att.OUT_INCONSISTENT] != 0.0:  # held by the attitude stage's own monitor
         reasons_now |= REASON_ATTITUDE_INCONSISTENT
+    held = _held_reasons(st)
     # no input the checks flagged this cycle (held or doubtful steer, rates or a_y): neither monitor compares
     sound = reasons_now & INPUT_FAULTS == 0
-    implausible = _plausibility(st, prm, out, cond, diag, lateral, speed[spd.OUT_U], sound)
+    # ... and the torque monitor not while one is held either (the channels re-converge after it)
+    settled = held & INPUT_FAULTS == 0
+    implausible = _plausibility(st, prm, out, cond, diag, lateral, speed[spd.OUT_U], settled)
     steer_implausible = _steer_kinematics(st, prm, inputs, cond, lateral, speed[spd.OUT_U], sound)
     out[OUT_STEER_RESIDUAL] = st[ST_STEER_RESIDUAL]
     if implausible or steer_implausible:
         reasons_now |= REASON_IMPLAUSIBLE
     # conditions that are states, not events, end as soon as they end
     states = REASON_SPEED_LOW | REASON_GPS_LOST | REASON_STALE | REASON_ATTITUDE_INCONSISTENT | REASON_IMPLAUSIBLE
-    reasons = (reasons_now & states) | (_held_reasons(st) & ~states)
+    reasons = (reasons_now & states) | (held & ~states)
 
     core_ok = inputs[inp.OUT_CORE_OK] != 0.0
     imu_ok = inputs[inp.OUT_IMU_OK] != 0.0
