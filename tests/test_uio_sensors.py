@@ -112,3 +112,23 @@ def test_within_target_on_the_nonlinear_plant(settings, design):
     assert r["torque_pct_of_peak"] <= 25.0
     assert r["roll_rmse_deg"] <= 1.5
     assert r["case2_torque_pct_of_peak"] > 50.0  # the old observer on the same ride
+
+
+def test_a_quantised_steer_is_taken_as_the_cell_it_allows():
+    """The encoder rounds: a reading says the steer is within half a count of it, so a prediction inside that cell is
+    kept and one outside is moved to the cell's nearer edge."""
+    q = 2.0 * math.pi / 1024
+    reading = 3 * q
+    assert cus._within_reading(reading, reading + 0.3 * q, q) == reading + 0.3 * q
+    assert cus._within_reading(reading, reading - 0.49 * q, q) == reading - 0.49 * q
+    assert cus._within_reading(reading, reading + 2.0 * q, q) == pytest.approx(reading + 0.5 * q)
+    assert cus._within_reading(reading, reading - 2.0 * q, q) == pytest.approx(reading - 0.5 * q)
+
+
+def test_the_step_is_told_the_encoders_count(settings, design):
+    from ptw_rt.core import diagnostics
+
+    prm = diagnostics.build_params(settings, design)
+    us = prm[diagnostics.P_US : diagnostics.P_US + cus.PARAM_SIZE]
+    assert us[cus.P_STEER_QUANTUM] == pytest.approx(2.0 * math.pi / settings.sensors.steer_counts_per_rev)
+    assert cus.stage_params(design)[cus.P_STEER_QUANTUM] == 0.0  # a continuous steer unless told

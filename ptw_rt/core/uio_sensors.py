@@ -70,7 +70,8 @@ P_NONLINEAR = 11  # 1: apply the nonlinear rows' correction d as a known input (
 P_NL = 12  # the correction's vehicle constants (core.kalman NL_*, 7 entries)
 P_N_OBS = P_NL + 7  # number of pre-observer outputs (>= P_N_OUT)
 P_OBS = P_N_OBS + 1  # M_* codes of the pre-observer outputs (MAX_OBS entries; the first P_N_OUT are P_OUT*)
-PARAM_SIZE = P_OBS + MAX_OBS
+P_STEER_QUANTUM = P_OBS + MAX_OBS  # rad, one count of the steer encoder (0: a continuous steer signal)
+PARAM_SIZE = P_STEER_QUANTUM + 1
 
 # ---- outputs ----
 OUT_ROLL = 0  # rad (the measured roll passed through when it is an input)
@@ -96,8 +97,9 @@ def stage_lambdas(degrees) -> np.ndarray:
     return lam
 
 
-def stage_params(design, lipschitz=None, nonlinear: bool = True) -> np.ndarray:
-    """The parameter vector from a `DesignData` (its `us_*` fields); `lipschitz` overrides `us_lipschitz`."""
+def stage_params(design, lipschitz=None, nonlinear: bool = True, steer_quantum: float = 0.0) -> np.ndarray:
+    """The parameter vector from a `DesignData` (its `us_*` fields); `lipschitz` overrides `us_lipschitz`;
+    `steer_quantum` [rad]: one count of the steer encoder that quantises the steer fed to the stage."""
     outs = np.asarray(design.us_outputs, dtype=np.int64)
     degs = np.asarray(design.us_degrees, dtype=np.int64)
     lip = np.asarray(design.us_lipschitz if lipschitz is None else lipschitz, dtype=np.float64)
@@ -117,6 +119,7 @@ def stage_params(design, lipschitz=None, nonlinear: bool = True) -> np.ndarray:
     prm[P_N_OBS] = obs.shape[0]
     for j in range(obs.shape[0]):
         prm[P_OBS + j] = obs[j]
+    prm[P_STEER_QUANTUM] = steer_quantum
     return prm
 
 
@@ -147,6 +150,26 @@ def _measurement(code: int, steer: float, yaw_rate: float, roll_rate: float, lat
     if code == M_ROLL_RATE:
         return roll_rate
     return lat_accel
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _within_reading(reading: float, predicted: float, quantum: float) -> float:
+    """The steer nearest to the pre-observer's prediction that the encoder's reading allows.
+
+    A reading of n counts says only that the steer lies within half a count of n counts (the encoder rounds).
+    Taken as the steer itself, every crossing of a count steps the steer error that the torque is reconstructed
+    from: deep in a 100 km/h corner, where the steer sits near zero and the pre-observer's linear tyres put its
+    predicted steer a fraction of a count from the truth, one crossing moved the torque by 2-4 N m. Inside the
+    reading's cell the prediction is kept (no error to reconstruct from); outside, the error counts from the
+    cell's nearer edge. Measured (docs/estimator.md, "The steer's quantisation"): on the realistic plant every
+    ride gains (`radius_accel` 27.3 -> 23.7 % of the peak); on the linear model with every other sensor exact,
+    where the prediction is already right, holding it within a cell costs accuracy at speed."""
+    half = 0.5 * quantum
+    if predicted > reading + half:
+        return reading + half
+    if predicted < reading - half:
+        return reading - half
+    return predicted
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -235,6 +258,13 @@ def uio_sensors_step(
         state[ST_W_PREV] = w
         state[ST_ROLL_HAT] = w
         state[ST_INIT] = 1.0
+    if prm[P_STEER_QUANTUM] > 0.0:
+        for j in range(n_obs):
+            if int(prm[P_OBS + j]) == M_STEER:
+                predicted = 0.0
+                for a in range(N_X):
+                    predicted += C[j, a] * z[a]
+                y[j] = _within_reading(y[j], predicted, prm[P_STEER_QUANTUM])
     n2 = Phi22.shape[1]
     n1 = N_X - n2
     th2 = state[ST_TH2 : ST_TH2 + n2]
