@@ -328,8 +328,13 @@ def _update(st: np.ndarray, H: np.ndarray, innovation: float, variance: float, g
         PH[i] = acc
     for i in range(N_X):
         s += H[i] * PH[i]
-    if not (s > 0.0) or innovation * innovation > gate * gate * s:
+    if not (s > 0.0 and math.isfinite(innovation)):
         st[ST_NU] = 0.0
+        return False
+    if innovation * innovation > gate * gate * s:
+        # not applied, but still evidence for the consistency monitor (which clips it): counted as 0, the gated
+        # peaks of a deep-lean weave (a_y to 10 m/s^2 and back within 0.2 s) left only the troughs in its mean
+        st[ST_NU] = innovation / math.sqrt(s)
         return False
     st[ST_NU] = innovation / math.sqrt(s)
     for i in range(N_X):
