@@ -77,7 +77,7 @@ STATE = Layout(
     psi_hist=MAX_LATENCY_CYCLES,  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
     psi_head=1,
     rejected=1,  # consecutive rejected lateral-force innovations
-    nu=1,  # whitened innovation e / sqrt(s) of the last scalar update (written by `_update`; 0 if gated out)
+    nu=1,  # whitened innovation e / sqrt(s) of the last scalar update (written by `_update`, gated out or not)
     # the stage's consistency monitor (attitude_stage):
     mean_lateral=1,  # running mean of the whitened lateral-force innovations
     mean_pitch=1,  # ... of the rotation-axis constraint's
@@ -226,10 +226,10 @@ OUTPUTS = Layout(
     vy=1,  # m/s
     rejected=1,  # 1 if this cycle's lateral-force innovation was gated out
     heading=1,  # rad, wrapped to (-pi, pi]
-    nu_lateral=1,  # whitened innovation of this cycle's lateral-force update (0 without one or if gated out)
+    nu_lateral=1,  # whitened innovation of this cycle's lateral-force update, gated out or not (0 without one)
     nu_pitch=1,  # whitened innovation of the rotation-axis constraint
     nu_course=1,  # whitened innovation of this cycle's GPS course (0 without a fix)
-    course_fix=1,  # 1 if a GPS course was fused this cycle
+    course_fix=1,  # 1 if a GPS course fix was compared this cycle (fused or gated out)
     yaw_rate_sd=1,  # rad/s, standard deviation of yaw_rate from the biases' uncertainty (what the tyres learn on)
     bay_sd=1,  # m/s^2, standard deviation of the lateral accelerometer's bias estimate
     # the stage's (attitude_stage), not the filter's:
@@ -331,12 +331,11 @@ def _update(st: np.ndarray, H: np.ndarray, innovation: float, variance: float, g
     if not (s > 0.0 and math.isfinite(innovation)):
         st[ST_NU] = 0.0
         return False
+    st[ST_NU] = innovation / math.sqrt(s)
     if innovation * innovation > gate * gate * s:
         # not applied, but still evidence for the consistency monitor (which clips it): counted as 0, the gated
         # peaks of a deep-lean weave (a_y to 10 m/s^2 and back within 0.2 s) left only the troughs in its mean
-        st[ST_NU] = innovation / math.sqrt(s)
         return False
-    st[ST_NU] = innovation / math.sqrt(s)
     for i in range(N_X):
         x[i] += PH[i] / s * innovation
     for i in range(N_X):
