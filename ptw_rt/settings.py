@@ -108,6 +108,9 @@ TYRE_BANK_SCHEMA = Section(
         # left `slalom_30` x0.7 VALID for 18-45 % of its second half on four of five noise seeds
         "alarm_hold": (Number("s", ge=0), 0.5),
         "settle_time": (Number("s", ge=0), 2.0),
+        # ... of which this much learning: a hypothesis nothing has tested since it became the most likely one (the
+        # lean beyond the linear range right after a road change moved the bank half-way) has not settled
+        "settle_learning_time": (Number("s", ge=0), 0.5),
         "valid_min_evidence": (Number("s", ge=0), 2.0),
         "min_learning_speed": (Number("m/s", gt=0), 8.0),
         # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
@@ -368,6 +371,7 @@ class TyreBankTuning:
     valid_max_nis_fast: float
     alarm_hold: float
     settle_time: float
+    settle_learning_time: float
     min_learning_speed: float
     max_learning_bias_share: float
     valid_min_evidence: float

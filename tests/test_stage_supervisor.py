@@ -119,7 +119,7 @@ def test_tyre_validity_from_the_bank(settings, design):
     `tyre_hold` s; a wide posterior or an inconsistent model: never."""
     b = sup.STAGE.alone(settings, design)
     dt, settle, hold = b.params[sup.P_DT], b.params[sup.P_TYRE_SETTLE], b.params[sup.P_TYRE_HOLD]
-    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 0.87}
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_scale": 0.87, "tyre_learning": 1.0}
     bits = lay.V_CORNERING | lay.V_CAMBER
     n_settle = int(round(settle / dt))
     # learning all along: valid once settled and once the faded count of learning cycles (the lateral stage's)
@@ -149,13 +149,46 @@ def test_a_posterior_made_narrow_by_a_moment_of_one_corner_is_not_valid(settings
     `tyre_min_evidence` seconds of learning (faded with the bank's memory) before it is valid."""
     b = sup.STAGE.alone(settings, design)
     dt = b.params[sup.P_DT]
-    narrow = {"tyre_log_sd": 0.0, "tyre_nis": 2.4, "tyre_nis_fast": 2.4, "tyre_map_scale": 0.72}
+    narrow = {"tyre_log_sd": 0.0, "tyre_nis": 2.4, "tyre_nis_fast": 2.4, "tyre_scale": 0.72, "tyre_learning": 1.0}
     bits = lay.V_CORNERING | lay.V_CAMBER
     count = _EvidenceCount(settings, dt)
     for _ in range(int(0.4 / dt)):
         assert not _step(b, tyres={**narrow, "tyre_evidence": count.learn()})[2] & bits
     for _ in range(int(20.0 / dt)):  # then 20 s of a deeper lean: nothing learned, nothing claimed
         assert not _step(b, tyres={**narrow, "tyre_evidence": count.idle()})[2] & bits
+
+
+def test_an_estimate_nothing_has_tested_since_it_moved_is_not_valid(settings, design):
+    """`mu_drop` seed 5 (docs/estimator.md, "Tyres"): a road change moved the bank half-way in 0.5 s of learning,
+    narrow, then 2 s of deeper lean taught it nothing; on wall time alone it was VALID 22.6 % off. Settled means
+    `tyre_settle` s without moving and `tyre_settle_learning` s of learning in them."""
+    b = sup.STAGE.alone(settings, design)
+    dt, settle = b.params[sup.P_DT], b.params[sup.P_TYRE_SETTLE]
+    tested = b.params[sup.P_TYRE_SETTLE_LEARNING]
+    assert 0.0 < tested < settle
+    narrow = {"tyre_log_sd": 0.004, "tyre_nis": 5.0, "tyre_nis_fast": 5.0, "tyre_scale": 0.613, "tyre_evidence": 5.0}
+    bits = lay.V_CORNERING | lay.V_CAMBER
+    for _ in range(int(round(2.0 * settle / dt))):  # longer than the settle time, nothing learned
+        assert not _step(b, tyres={**narrow, "tyre_learning": 0.0})[2] & bits
+    learned = [_step(b, tyres={**narrow, "tyre_learning": 1.0})[2] & bits for _ in range(int(round(tested / dt)) + 1)]
+    assert not any(learned[:-2]) and learned[-1] == bits
+
+
+def test_an_estimate_that_moves_beyond_its_spread_starts_settling_again(settings, design):
+    """The most likely hypothesis is a 15 % grid cell: within one, a road change moved the estimate by 8 % while it
+    stayed VALID (48 % off). A move beyond the claimed spread (`tyre_valid_log_sd` in log k) from where the
+    estimate settled restarts the settle time; moves within it do not."""
+    b = sup.STAGE.alone(settings, design)
+    dt, settle, spread = b.params[sup.P_DT], b.params[sup.P_TYRE_SETTLE], b.params[sup.P_TYRE_VALID_LOG_SD]
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_learning": 1.0, "tyre_evidence": 5.0}
+    bits = lay.V_CORNERING | lay.V_CAMBER
+    n = int(round(settle / dt)) + 2
+    assert [_step(b, tyres={**good, "tyre_scale": 1.0})[2] & bits for _ in range(n)][-1] == bits
+    wobble = math.exp(0.8 * spread)  # within the spread: still valid
+    assert _step(b, tyres={**good, "tyre_scale": wobble})[2] & bits
+    moved = math.exp(1.2 * spread)
+    after = [_step(b, tyres={**good, "tyre_scale": moved})[2] & bits for _ in range(n)]
+    assert not any(after[: n - 3]) and after[-1] == bits
 
 
 def _steady_turn(b, speed: float, lat_accel: float, steer_offset: float = 0.0, yaw_gyro_scale: float = 1.0) -> dict:
@@ -180,7 +213,7 @@ def test_the_steer_angle_is_checked_against_the_yaw_rate_in_a_corner(settings, d
     b = sup.STAGE.alone(settings, design)
     dt = b.params[sup.P_DT]
     sup_speed = {"known": 1.0}
-    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_map_scale": 1.0}
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_scale": 1.0, "tyre_learning": 1.0}
     count = _EvidenceCount(settings, dt)
 
     def step(turn):

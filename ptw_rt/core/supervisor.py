@@ -17,7 +17,8 @@ have settled. Tyre stiffness (the tyre bank's scale, lateral stage) from its own
 the posterior spread of log k within ``tyre_valid_log_sd`` (the data single out one tyre), the most likely
 filter's windowed normalised innovation within ``tyre_valid_max_nis`` (that tyre explains the data), no
 short-window inconsistency (``tyre_valid_max_nis_fast``, a sudden change of road) for ``tyre_hold`` seconds,
-the most likely hypothesis unchanged for ``tyre_settle`` seconds, the estimate resting on ``tyre_min_evidence``
+the estimate within that spread of where it settled for ``tyre_settle`` seconds with ``tyre_settle_learning`` of them
+learning (held while new evidence came in), the estimate resting on ``tyre_min_evidence``
 seconds of learning (the lateral stage's count, faded with the bank's memories), and the observers settled.
 
 Plausibility (issue #16): the published torque against the UIHOSMO on the sensors (``_plausibility``), and the
@@ -77,8 +78,9 @@ STATE = Layout(
     time=1,  # s since start (sum of dt)
     reason_until=N_REASONS,  # per reason bit: time until which it stays raised
     tyre_alarm_until=1,  # s: the tyres are not valid before this (a short-window inconsistency was seen)
-    tyre_stable_since=1,  # s: since when the most likely tyre hypothesis has been the same and concentrated
-    tyre_last_map=1,  # that hypothesis' scale
+    tyre_stable_since=1,  # s: since when the tyre scale has been concentrated and within its spread of ...
+    tyre_stable_scale=1,  # ... this scale (the published k when that clock started)
+    tyre_tested_for=1,  # s of learning cycles since then (the evidence that has tested that scale)
     torque_ms=1,  # N^2 m^2: windowed mean square of published - UIHOSMO-on-sensors torque (plausibility)
     torque_rate_ms=1,  # N^2 m^2/s^2: ... of the published torque's rate (what lag alone turns into a residual)
     last_torque=1,  # N m: the published torque of the last cycle the monitor ran
@@ -92,7 +94,8 @@ STATE = Layout(
     ST_REASON_UNTIL,
     ST_TYRE_ALARM_UNTIL,
     ST_TYRE_STABLE_SINCE,
-    ST_TYRE_LAST_MAP,
+    ST_TYRE_STABLE_SCALE,
+    ST_TYRE_TESTED_FOR,
     ST_TORQUE_MS,
     ST_TORQUE_RATE_MS,
     ST_LAST_TORQUE,
@@ -127,7 +130,8 @@ PARAMS = Layout(
     tyre_valid_max_nis=1,  # ... the most likely filter's windowed NIS within this ...
     tyre_valid_max_nis_fast=1,  # ... and its short-window NIS has not exceeded this
     tyre_hold=1,  # s: for this long after it did
-    tyre_settle=1,  # s the most likely hypothesis must have stayed the same
+    tyre_settle=1,  # s the most likely hypothesis must have stayed the same ...
+    tyre_settle_learning=1,  # ... of which this long learning
     tyre_min_evidence=1,  # s of learning cycles (the lateral stage's faded count) the estimate must rest on
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
@@ -158,6 +162,7 @@ PARAMS = Layout(
     P_TYRE_VALID_MAX_NIS_FAST,
     P_TYRE_HOLD,
     P_TYRE_SETTLE,
+    P_TYRE_SETTLE_LEARNING,
     P_TYRE_MIN_EVIDENCE,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
@@ -210,6 +215,7 @@ def build_params(settings, design) -> np.ndarray:
         tyre_valid_max_nis_fast=est.tyre_bank.valid_max_nis_fast,
         tyre_hold=est.tyre_bank.alarm_hold,
         tyre_settle=est.tyre_bank.settle_time,
+        tyre_settle_learning=est.tyre_bank.settle_learning_time,
         tyre_min_evidence=est.tyre_bank.valid_min_evidence,
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
@@ -446,9 +452,20 @@ def supervisor_stage(
     if lateral[lat.OUT_TYRE_NIS_FAST] > prm[P_TYRE_VALID_MAX_NIS_FAST]:
         st[ST_TYRE_ALARM_UNTIL] = t + prm[P_TYRE_HOLD]
     concentrated = lateral[lat.OUT_TYRE_LOG_SD] <= prm[P_TYRE_VALID_LOG_SD]
-    if not concentrated or lateral[lat.OUT_TYRE_MAP_SCALE] != st[ST_TYRE_LAST_MAP]:
+    # settled means the estimate held, and held while new evidence came in. Held: within its own claimed spread (the
+    # most likely hypothesis alone is a 15 % grid cell, and a road change moved k by 8 % inside one while it stayed
+    # VALID, 48 % off). Tested: time without learning (a lean beyond the tyres' linear range) tests nothing; on
+    # wall time alone, a bank that a road change had moved half-way in 0.5 s and that then rode 2 s of deeper lean
+    # was VALID 22.6 % off (`mu_drop` seed 5, docs/estimator.md, "Settled means held, and tested")
+    scale = lateral[lat.OUT_TYRE_SCALE]
+    settled_at = st[ST_TYRE_STABLE_SCALE]
+    drift = abs(math.log(scale / settled_at)) if scale > 0.0 and settled_at > 0.0 else math.inf
+    if not concentrated or not drift <= prm[P_TYRE_VALID_LOG_SD]:
         st[ST_TYRE_STABLE_SINCE] = t
-    st[ST_TYRE_LAST_MAP] = lateral[lat.OUT_TYRE_MAP_SCALE]
+        st[ST_TYRE_STABLE_SCALE] = scale
+        st[ST_TYRE_TESTED_FOR] = 0.0
+    elif lateral[lat.OUT_TYRE_LEARNING] != 0.0:
+        st[ST_TYRE_TESTED_FOR] += prm[P_DT]
     if (
         run
         and run_time >= prm[P_CONVERGE_TIME]
@@ -457,6 +474,7 @@ def supervisor_stage(
         and lateral[lat.OUT_TYRE_NIS] <= prm[P_TYRE_VALID_MAX_NIS]
         and t >= st[ST_TYRE_ALARM_UNTIL]
         and t - st[ST_TYRE_STABLE_SINCE] >= prm[P_TYRE_SETTLE]
+        and st[ST_TYRE_TESTED_FOR] >= prm[P_TYRE_SETTLE_LEARNING]
         and lateral[lat.OUT_TYRE_EVIDENCE] >= prm[P_TYRE_MIN_EVIDENCE]  # what it rests on (lateral stage)
     ):
         valid |= V_CORNERING | V_CAMBER
