@@ -50,6 +50,20 @@ def _analyze(args) -> int:
     return run_analyze(args)
 
 
+MAX_WORKERS = 1024
+
+
+def _worker_count(text: str) -> int:
+    """--jobs: a count of worker processes, 1 .. MAX_WORKERS (argparse prints the error as one line, exit 2)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if not 1 <= n <= MAX_WORKERS:
+        raise argparse.ArgumentTypeError(f"a number of worker processes, 1 to {MAX_WORKERS}, not {text!r}")
+    return n
+
+
 def _design(args) -> int:
     from ptw_rt.design.build import run_design
 
@@ -114,8 +128,16 @@ def _speeds(text: str) -> list[float]:
     return values
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors as one line (the usage block is what --help is for): like every other refusal of
+    the command line, one line on stderr and exit 2."""
+
+    def error(self, message: str):  # noqa: ANN201 - argparse's signature; never returns
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ptw-rt",
         description="Real-time roll, rider-torque and tyre-stiffness estimator for powered two-wheelers.",
     )
@@ -197,7 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="issue #12's matrix: every scenario x {nominal, tyres x0.7, x1.3, mu 0.85, mass +50 kg}, in parallel",
     )
-    p.add_argument("--jobs", type=int, default=None, help="with --matrix: worker processes (default: all cores)")
+    p.add_argument(
+        "--jobs", type=_worker_count, default=None, help="with --matrix: worker processes (default: all cores)"
+    )
     p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
     p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE", help="plant perturbation")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML")
@@ -262,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML (default: %(default)s)"
     )
     p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
-    p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
+    p.add_argument("--jobs", type=_worker_count, default=None, help="parallel processes (default: all cores)")
     p.add_argument(
         "--max-gap",
         type=float,

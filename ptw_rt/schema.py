@@ -196,6 +196,20 @@ class _ConfigLoader(yaml.SafeLoader):
             raise _Refused(f"integer with {digits} digits (at most {MAX_INT_DIGITS})", node.start_mark)
         return super().construct_yaml_int(node)
 
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        # YAML takes the last of two equal keys silently: a tuning value written twice (or a section pasted twice)
+        # would be half ignored with nothing said
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                if key in seen:
+                    raise _Refused(f"key {short_text(repr(key))} appears twice in one section", key_node.start_mark)
+                seen.add(key)
+            except TypeError:  # an unhashable key: the base class says so
+                pass
+        return super().construct_mapping(node, deep)
+
 
 _ConfigLoader.add_constructor("tag:yaml.org,2002:int", _ConfigLoader.construct_yaml_int)
 

@@ -137,7 +137,7 @@ TYRE_BANK_SCHEMA = Section(
 
 ESTIMATOR_SCHEMA = Section(
     {
-        "sample_time": Number("s", gt=0, le=0.1),
+        "sample_time": Number("s", ge=0.001, le=0.1),
         "speed_grid": Section(
             {
                 "min_kmh": Number("km/h", gt=0),
@@ -577,12 +577,23 @@ def runtime_defaults() -> RuntimeSettings:
     return runtime_from_mapping(RUNTIME_SCHEMA.check("runtime", {}))
 
 
+# design speeds a config may ask for (10-130 km/h every 0.5 km/h is 241; the file's default is 49): a step of 0.01
+# km/h asked for 12 000 designs, a step of 1e-9 for an array of 894 GiB
+MAX_GRID_SPEEDS = 250
+
+
 def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
     grid = est["speed_grid"]
     if grid["max_kmh"] <= grid["min_kmh"]:
         raise ConfigError(f"{source}: estimator.speed_grid.max_kmh must be above min_kmh")
     if grid["step_kmh"] > grid["max_kmh"] - grid["min_kmh"]:
         raise ConfigError(f"{source}: estimator.speed_grid.step_kmh is larger than the grid span")
+    speeds = (grid["max_kmh"] - grid["min_kmh"]) / grid["step_kmh"] + 1
+    if speeds > MAX_GRID_SPEEDS:
+        raise ConfigError(
+            f"{source}: estimator.speed_grid gives {speeds:.0f} design speeds, at most {MAX_GRID_SPEEDS}: raise "
+            "step_kmh (each speed is a design of every observer, and a table row in the design file the daemon loads)"
+        )
     if est["min_valid_speed_kmh"] < grid["min_kmh"]:
         raise ConfigError(
             f"{source}: estimator.min_valid_speed_kmh ({est['min_valid_speed_kmh']}) is below the design grid "

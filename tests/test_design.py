@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 
@@ -223,3 +224,11 @@ def test_design_cli_writes_a_loadable_file(tmp_path, settings):
     )
     assert proc.returncode == 0, proc.stderr
     assert load_design(out, settings.config_hash).grid.shape == (49,)
+
+
+def test_a_matrix_that_overflowed_is_not_stable():
+    """A decay rate of 1e6 1/s overflowed the UIHOSMO's tables to inf: the check said so with numpy's LinAlgError
+    traceback (found by fuzzing, 2026-11-26); a non-finite matrix has an infinite spectral radius (not stable)."""
+    assert spectral_radius(np.array([[0.5, np.inf], [0.0, 0.5]])) == math.inf
+    assert spectral_radius(np.array([[np.nan]])) == math.inf
+    assert spectral_radius(np.diag([0.5, -0.9])) == pytest.approx(0.9)

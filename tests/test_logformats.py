@@ -88,6 +88,17 @@ def test_every_format_reads_the_frames_of_the_original(ride, fmt):
         assert [f[0] for f in got] == [f[0] for f in ref]
 
 
+@pytest.mark.parametrize("fmt", ["asc", "trc", "csv"])
+def test_a_byte_order_mark_is_not_part_of_the_first_line(ride, fmt, tmp_path):
+    """Windows editors save a UTF-8 BOM: a TRC file with one lost its ";$FILEVERSION" header and every line with it
+    (found by fuzzing, 2026-11-26)."""
+    bom = tmp_path / f"bom.{fmt}"
+    bom.write_bytes(b"\xef\xbb\xbf" + ride[fmt].read_bytes())
+    ref, _ = _frames(ride[fmt])
+    got, stats = _frames(bom)
+    assert stats.malformed == 0 and [f[1:] for f in got] == [f[1:] for f in ref]
+
+
 @pytest.mark.parametrize("fmt", ["blf", "trc", "csv", "mf4"])
 def test_replay_of_every_format_equals_the_candump_original(replays, fmt):
     (ref_log, ref_csv), (log, csv) = replays["candump"], replays[fmt]

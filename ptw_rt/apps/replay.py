@@ -372,22 +372,30 @@ def _final_tyres(estimates: np.ndarray) -> dict[str, Any]:
 # ---------------------------------------------------------------------- CLI
 
 
-def _collect_logs(paths: list[Path], exclude: Path | None = None) -> tuple[list[tuple[Path, Path]], bool]:
+def _collect_logs(
+    paths: list[Path], exclude: Path | None = None, several: bool = False
+) -> tuple[list[tuple[Path, Path]], bool]:
     """Input logs as (path, name of its output relative to --out) and whether any directory was given.
 
     A directory is searched recursively (at most MAX_TREE_DEPTH levels, symbolic links to directories not
     followed, `exclude` -- the output directory -- skipped): every file with a log extension
     (``ptw_rt.io.logformats.EXTENSIONS``) is a log (one that is not fails on its own), except ``.csv`` files,
     which are taken only when they are python-can CAN CSV: a ride's truth and estimates CSV files sit beside its
-    log. Its outputs mirror the tree below it; a file given directly keeps its name."""
+    log. Its outputs mirror the tree below it; a file given directly keeps its name. With `several` inputs (more
+    than one, or a --list file) a path that is missing, unreadable or not a regular file is kept as a log that
+    fails on its own, like any bad log of a fleet run (its `error:` line, exit 1): one stale line of a list of
+    thousands must not stop the others."""
     files: list[tuple[Path, Path]] = []
     any_dir = False
     for p in paths:
         try:
             st = p.stat()
-        except FileNotFoundError:
-            raise UserFacingError(f"CAN log not found: {p}") from None
         except OSError as exc:
+            if several:
+                files.append((p, _output_name(p)))
+                continue
+            if isinstance(exc, FileNotFoundError):
+                raise UserFacingError(f"CAN log not found: {p}") from None
             raise UserFacingError(f"cannot read CAN log {p}: {exc.strerror or exc}") from None
         if stat.S_ISDIR(st.st_mode):
             any_dir = True
@@ -395,11 +403,17 @@ def _collect_logs(paths: list[Path], exclude: Path | None = None) -> tuple[list[
             if not found:
                 raise UserFacingError(f"no CAN logs in directory {p} ({', '.join(EXTENSIONS)})")
             files.extend(found)
-        elif stat.S_ISREG(st.st_mode):
-            files.append((p, Path(p.name)))
+        elif stat.S_ISREG(st.st_mode) or several:
+            files.append((p, _output_name(p)))
         else:
             raise UserFacingError(f"{p}: CAN log is {file_kind(st.st_mode)}, not a regular file")
     return files, any_dir
+
+
+def _output_name(p: Path) -> Path:
+    """A log given directly keeps its name for its output (and with it its format); one whose extension names no
+    log format (a list's `ride.bin`, a FIFO) gets candump's `.log` added."""
+    return Path(p.name if p.suffix.lower() in EXTENSIONS else p.name + ".log")
 
 
 def _logs_below(top: Path, exclude: Path | None) -> list[Path]:
@@ -439,7 +453,7 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
         inputs.extend(fleet.read_list_file(list_file))
     if not inputs:
         raise UserFacingError("no input log: give logs, directories or --list FILE")
-    files, any_dir = _collect_logs(inputs, exclude=args.out)
+    files, any_dir = _collect_logs(inputs, exclude=args.out, several=len(inputs) > 1 or list_file is not None)
     if len(files) == 1 and not any_dir and list_file is None:
         if args.out.is_dir():
             raise ReplayOutputError(f"--out {args.out} is a directory; with one input log --out names the output file")

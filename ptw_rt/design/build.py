@@ -29,7 +29,26 @@ class DesignInfeasibleError(UserFacingError, RuntimeError):
     pass
 
 
+# what the numerics raise when a vehicle or tuning that passed the schema's ranges admits no design (a Riccati
+# equation without a stabilising solution, overflow, a case that is not detectable): one line, exit 2
+_NO_DESIGN = (np.linalg.LinAlgError, ArithmeticError, ValueError, MemoryError)
+
+
 def make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
+    """The design of `settings`' vehicle and tuning; `DesignInfeasibleError` (one line) when there is none."""
+    try:
+        with np.errstate(all="ignore"):  # a failure is reported as one line below, not as numpy's warnings
+            return _make_design(settings)
+    except UserFacingError:
+        raise
+    except _NO_DESIGN as exc:
+        raise DesignInfeasibleError(
+            f"{settings.source}: no design for this vehicle and tuning ({type(exc).__name__}: {exc}); "
+            "check the values changed from config/scooter.yaml"
+        ) from None
+
+
+def _make_design(settings: Settings) -> tuple[DesignData, dict[str, Any]]:
     p, est = settings.vehicle, settings.estimator
     dt = est.sample_time
     grid = est.speed_grid_ms()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import scipy.linalg as sla
 
@@ -39,7 +41,12 @@ def ramp_response(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
 
 
 def spectral_radius(M: np.ndarray) -> float:
-    return float(np.max(np.abs(np.linalg.eigvals(M)))) if M.size else 0.0
+    """Largest |eigenvalue|; infinite for a matrix that is not finite (a design that overflowed is not stable)."""
+    if not M.size:
+        return 0.0
+    if not np.all(np.isfinite(M)):
+        return math.inf
+    return float(np.max(np.abs(np.linalg.eigvals(M))))
 
 
 def interpolate(grid: np.ndarray, table: np.ndarray, u: float) -> np.ndarray:

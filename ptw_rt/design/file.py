@@ -261,6 +261,10 @@ def load_design(path: str | Path, expected_hash: str | None = None, config_path:
             raise DesignFileError(
                 f"{path}: {name} has {raw[name].shape[0]} speed grid points, grid has {n_grid}; {hint}"
             )
+    for name in sorted(raw):
+        # a table with a NaN loads and runs, every cycle DEGRADED with nothing said (a tampered or damaged file)
+        if raw[name].dtype.kind in "fc" and not np.all(np.isfinite(raw[name])):
+            raise DesignFileError(f"{path}: {name} holds values that are not finite (NaN or infinity); {hint}")
     values = {}
     for f in fields(DesignData):
         v = raw[f.name]

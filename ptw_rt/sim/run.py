@@ -103,7 +103,15 @@ def run_simulate(args) -> int:
     except ConfigError as exc:
         raise UserFacingError(str(exc)) from None
     t0 = time.perf_counter()
-    ride = simulate(sc, seed=args.seed, duration=args.duration, vehicle=vehicle, perturbation=pert, progress=True)
+    try:
+        with np.errstate(all="ignore"):  # reported as one line below
+            ride = simulate(
+                sc, seed=args.seed, duration=args.duration, vehicle=vehicle, perturbation=pert, progress=True
+            )
+    except (np.linalg.LinAlgError, ArithmeticError) as exc:
+        # the simulated rider is an LQR designed for the vehicle: a vehicle the schema's ranges let through may have
+        # none (a relaxation length of 1e-12 m)
+        raise UserFacingError(f"--config {config}: no rider controller for this vehicle ({exc})") from None
     sim_wall = time.perf_counter() - t0
     from ptw_rt.sim.recording import write_ride
 

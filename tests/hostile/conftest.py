@@ -87,6 +87,15 @@ def build_configs(d: Path) -> dict[str, Path]:
             "binary_tag": _write(d / "tag.yaml", "a: !!python/object:os.system [echo pwned]\n"),
             "bad_date": _write(d / "date.yaml", "a: 2024-13-45\n"),
             "many_nodes": _write(d / "nodes.yaml", "".join(f"k{i}: [1, 2]\n" for i in range(20_000))[:250_000]),
+            # values within the schema's ranges that admit no design or no simulated rider (found by fuzzing,
+            # 2026-11-26): numpy's LinAlgError / ArithmeticError / MemoryError reached the user as tracebacks
+            "grid_too_fine": _write(d / "grid_fine.yaml", good.replace("step_kmh: 2.5", "step_kmh: 1.0e-9", 1)),
+            "no_design": _write(
+                d / "no_design.yaml", good.replace("relaxation_length: 0.2 ", "relaxation_length: 1.0e-12 ", 1)
+            ),
+            "duplicate_key": _write(
+                d / "duplicate.yaml", good.replace("estimator:\n", "estimator:\n  sample_time: 0.02\n", 1)
+            ),
         }
     )
     return files
@@ -158,6 +167,13 @@ def build_designs(d: Path) -> dict[str, Path]:
     with zipfile.ZipFile(odd, "w") as zf:
         zf.writestr("../../etc/passwd.npy", b"")
     files["odd_member_name"] = odd
+
+    # 8. a well-formed table with a NaN in it: it would load and run DEGRADED every cycle, with nothing said
+    nan = d / "nan_table.npz"
+    phi = good["tb_Phi"].copy()
+    phi.flat[0] = np.nan
+    np.savez(nan, **{**good, "tb_Phi": phi})
+    files["nan_table"] = nan
     return files
 
 

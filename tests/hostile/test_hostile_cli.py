@@ -58,6 +58,13 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
         (["replay", hostile_logs["swapped_pairs"], "--out", out / "c.log", "--csv", "/dev/full"], 74),
         (["replay", log, "--out", out / "g.log", "--max-gap", "nan"], 2),
         (["demo", "--config", c["long_bad_text"], "--out", out / "demo"], 2),
+        # within the schema's ranges, no design / no simulated rider: one line, not numpy's traceback
+        (["design", "--config", c["grid_too_fine"], "--out", out / "d.npz"], 2),
+        (["design", "--config", c["no_design"], "--out", out / "d.npz"], 2),
+        (["simulate", "--scenario", "dlc_50", "--duration", "2", "--config", c["no_design"], "--out", out / "s"], 2),
+        (["design", "--config", c["duplicate_key"], "--out", out / "d.npz"], 2),
+        (["replay", log, "--out", out / "n.log", "--design-file", d["nan_table"]], 2),
+        (["replay", log, "--out", out / "j.log", "--jobs", "0"], 2),
     ]
     results = run_many([args for args, _ in commands], cwd=tmp_path, timeout=TIMEOUT)
     expected = {tuple(map(str, args)): rc for args, rc in commands}

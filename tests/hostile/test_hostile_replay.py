@@ -212,6 +212,24 @@ def test_bad_log_in_a_directory_run_never_stops_the_others(hostile_logs, tmp_pat
     assert "1 of 3 logs failed" in err.getvalue()
 
 
+def test_a_stale_line_of_a_list_never_stops_the_others(hostile_logs, tmp_path):
+    """A fleet's --list of thousands with one missing, one FIFO: those two fail on their own (exit 1), the rest
+    are replayed (it stopped the whole run with exit 2; found by fuzzing, 2026-11-26)."""
+    good = tmp_path / "good.log"
+    good.write_bytes(hostile_logs["gap_3s"].read_bytes())
+    listing = tmp_path / "logs.txt"
+    listing.write_text(f"{good}\n{tmp_path / 'gone.log'}\n{hostile_logs['fifo']}\n")
+    out, err = io.StringIO(), io.StringIO()
+    args = _args([], tmp_path / "out")
+    args.list = listing
+    assert run_replay(args, out=out, err=err) == EXIT_PARTIAL
+    by_name = {s["log"].rsplit("/", 1)[-1]: s for s in map(json.loads, out.getvalue().splitlines())}
+    assert by_name["good.log"]["cycles"] > 0
+    assert "not found" in by_name["gone.log"]["error"]
+    assert "not a regular file" in by_name[hostile_logs["fifo"].name]["error"]
+    assert "2 of 3 logs failed" in err.getvalue()
+
+
 def test_worker_exception_becomes_the_logs_error(monkeypatch, tmp_path):
     def boom(*a, **kw):
         raise RuntimeError("simulated bug\nsecond line")
