@@ -98,9 +98,18 @@ def _settings(channel: str, tmp_path, serial_port: str | None):
 
 
 def _ride(
-    codec, ride_frames, tmp_path, *, serial: bool, unplug_at: float | None = None, replug_at: float | None = None
+    codec,
+    ride_frames,
+    tmp_path,
+    *,
+    serial: bool,
+    unplug_at: float | None = None,
+    replug_at: float | None = None,
+    can_gps_too: bool = False,
 ):
-    """One live run: returns ([(cycle time, ride time, roll, roll valid, mode, SensorTimeouts)], events, daemon)."""
+    """One live run: returns ([(cycle time, ride time, roll, roll valid, mode, SensorTimeouts)], events, daemon).
+    `can_gps_too`: with the serial receiver, GPS_Velocity frames on the bus as well (another node's, or a forged
+    one's), which the daemon must not take."""
     channel = f"ptw-gnss-{uuid.uuid4().hex[:10]}"
     gps_id = codec.frame_id("GPS_Velocity")
     link = tmp_path / f"gnss-{uuid.uuid4().hex[:6]}"
@@ -140,6 +149,8 @@ def _ride(
                 v = codec.decode(fid, data)[1]
                 if "unplug" not in events or "replug" in events:
                     pty.write(rmc(v["SpeedOverGround"], v["CourseOverGround"], int(v["FixType"])))
+                if can_gps_too:
+                    bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
             else:
                 bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
         bus.shutdown()
@@ -196,7 +207,11 @@ def test_serial_gnss_matches_can_gps(codec, ride_frames, tmp_path):
 
 
 def test_unplugged_receiver_degrades_within_3_cycles_and_recovers(codec, ride_frames, tmp_path):
-    rows, received, events, daemon = _ride(codec, ride_frames, tmp_path, serial=True, unplug_at=3.0, replug_at=3.5)
+    """GPS_Velocity frames on the bus all along: with the GPS on the serial port they are not taken (they kept an
+    unplugged receiver from ever being flagged; found by fuzzing, 2026-11-26)."""
+    rows, received, events, daemon = _ride(
+        codec, ride_frames, tmp_path, serial=True, unplug_at=3.0, replug_at=3.5, can_gps_too=True
+    )
     unplug, replug = events["unplug"], events["replug"]
     modes_before = [m for t, m in rows if unplug - 0.3 <= t < unplug]
     assert modes_before and all(m == MODE_VALID for m in modes_before)

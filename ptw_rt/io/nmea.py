@@ -189,6 +189,8 @@ class NmeaParser:
             fix = FIX_3D
         if not math.isnan(course):
             course %= 360.0
+            if course >= 360.0:  # -1e-300 % 360 rounds to 360.0: the same direction as 0, the range excludes 360
+                course = 0.0
         return GnssVelocity(speed, course, fix, kind)
 
 

@@ -130,6 +130,10 @@ def _open_bus(bus_cfg: BusSettings, filters: list[dict]) -> can.BusABC:
         raise UserFacingError(f"CAN interface {bus_cfg.interface!r} is not available: {exc}") from exc
 
 
+# the input message a serial GNSS receiver stands for (its solutions are fed as this message's signals)
+SERIAL_GPS_MESSAGE = "GPS_Velocity"
+
+
 class _Reader(threading.Thread):
     """Receives frames from the bus into a deque as (monotonic time, id, data, extended); flags a lost bus."""
 
@@ -304,7 +308,12 @@ class Daemon:
         self.codec = self.runner.codec
         self.dt = self.runner.sample_time
         self.status_period = self.runner.encoder.periods["EST_Status"]
-        self.filters = self.codec.can_filters(self.codec.input_messages)
+        # with the GPS on a serial receiver, GPS_Velocity frames on the bus are not ours to trust: taken beside it,
+        # they kept a receiver that had gone silent from ever being flagged (found by fuzzing, 2026-11-26)
+        serial_gps = settings.runtime.gps.source == "serial"
+        self.filters = self.codec.can_filters(
+            [m for m in self.codec.input_messages if not (serial_gps and m == SERIAL_GPS_MESSAGE)]
+        )
         self.notifier = notifier if notifier is not None else SystemdNotifier()
         self.watchdog = WatchdogGate(self.notifier)
         self.rate_log = RateLimitedLog(log, settings.runtime.log_repeat_interval_s)
@@ -444,7 +453,7 @@ class Daemon:
             signals["SpeedOverGround"] = speed
         if course == course:  # receivers leave the course empty at standstill
             signals["CourseOverGround"] = course
-        runner.on_values("GPS_Velocity", t, signals)
+        runner.on_values(SERIAL_GPS_MESSAGE, t, signals)
 
     def _warm_up(self, runner: CycleRunner | None = None) -> None:
         """Load every compiled function of the cycle before the loop (loading/compiling takes far longer than a
