@@ -364,3 +364,27 @@ def test_run_monitor_tty_refreshes_in_place():
     assert rc == 1  # nothing sent: silent
     assert text.count("\r") >= 3
     assert text.count("\n") == 1 and text.endswith("\n")  # one final newline after the refreshed line
+
+
+def test_sigterm_ends_the_watch_with_its_verdict():
+    """`timeout 60 ptw-rt monitor`, systemd, a supervisor: SIGTERM ends the watch like Ctrl-C, with the final line
+    and the verdict on stderr (it killed the monitor mid-line, status 143; found by fuzzing, 2026-11-26)."""
+    import signal
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "ptw_rt", "monitor", "--interface", "virtual", "--channel", "ptw-sigterm-test"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60.0
+        line = proc.stdout.readline()  # the first periodic line: the watch is running
+        assert line.startswith("t="), line
+        assert time.monotonic() < deadline
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1  # nothing on the bus: silent, a problem seen
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("monitor: problems seen: ")

@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -324,6 +326,18 @@ def _open_bus(interface: str, channel: str, filters: list[dict]):
         raise UserFacingError(f"cannot open CAN bus {interface}:{channel}: {exc}") from exc
 
 
+def _interrupt(signum, frame) -> None:  # noqa: ANN001 - signal's handler protocol
+    raise KeyboardInterrupt
+
+
+def _stop_on_sigterm():  # noqa: ANN202 - signal's previous handler, whatever it was
+    """SIGTERM raises KeyboardInterrupt in the watch loop; returns the handler to restore (None off the main thread,
+    where Python cannot install one)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _interrupt)
+
+
 def run_monitor(args, *, out: TextIO | None = None) -> int:
     """``ptw-rt monitor``: decode the estimator's frames live until ``--duration`` or Ctrl-C.
 
@@ -371,6 +385,9 @@ def run_monitor(args, *, out: TextIO | None = None) -> int:
         printed = True
         out.flush()
 
+    # SIGTERM (`timeout 60 ptw-rt monitor`, systemd, a supervisor) ends the watch like Ctrl-C: with the final line
+    # and the verdict, not killed in the middle of a line
+    previous = _stop_on_sigterm()
     try:
         while True:
             now = time.monotonic()
@@ -395,6 +412,8 @@ def run_monitor(args, *, out: TextIO | None = None) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         bus.shutdown()
     now = time.monotonic()
     monitor.check(now)
