@@ -348,10 +348,15 @@ def text_blocks(read: Callable[[], str], max_chars: int = MAX_LINE_CHARS) -> Ite
     rejects (``too_long``). Used by every text log format."""
     rest = ""
     skipping = False  # inside an over-long line: drop up to its newline
+    first = True
     while True:
         chunk = read()
         if not chunk:
             break
+        if first:  # a byte-order mark (Windows editors save one) is not part of the first line
+            chunk, first = chunk.removeprefix("\ufeff"), False
+            if not chunk:
+                continue
         cut = chunk.rfind("\n")
         if cut < 0:  # no line ends in this chunk
             if not skipping:

@@ -309,8 +309,6 @@ class _MessageReader(TimeRule):
         for block in text_blocks(read, MAX_TEXT_LINE):
             for line in block:
                 n += 1
-                if n == 1 and line.startswith("\ufeff"):  # a byte-order mark (Windows editors): not the header's
-                    line = line[1:]
                 yield n, line
 
 
