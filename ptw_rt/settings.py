@@ -15,6 +15,7 @@ Every section is validated by the schema below (``ptw_rt.schema``) before it bec
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -497,6 +498,11 @@ class SensorSettings:
     gyro_calibration_max_rate: float  # rad/s
     steer_zero_time_constant: float  # s of straight riding
     steer_zero_max_shift: float  # counts
+
+    @property
+    def steer_count_rad(self) -> float:
+        """One count of the steering encoder [rad]."""
+        return 2.0 * math.pi / self.steer_counts_per_rev
 
 
 @dataclass(frozen=True)

@@ -142,7 +142,7 @@ def build_params(settings, design) -> np.ndarray:
         fusion_rate=1.0 / est.roll_fusion_time_constant,
         max_roll=est.max_roll,
         steer_zero_rate=float(design.sample_time) / sens.steer_zero_time_constant,
-        steer_zero_max_shift=sens.steer_zero_max_shift * TWO_PI / sens.steer_counts_per_rev,
+        steer_zero_max_shift=sens.steer_zero_max_shift * sens.steer_count_rad,
         wheelbase=veh.l_f + veh.l_r,
         cos_caster=math.cos(veh.caster),
     )

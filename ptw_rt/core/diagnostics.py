@@ -127,7 +127,7 @@ def build_params(settings, design) -> np.ndarray:
         sta_lc_r=est.force_observer_yaw_bound,
         sta_lc_w=est.force_observer_lateral_bound,
         geom=lateral_yaw_constants(settings.vehicle),
-        us=cus.stage_params(design, steer_quantum=2.0 * math.pi / settings.sensors.steer_counts_per_rev),
+        us=cus.stage_params(design, steer_quantum=settings.sensors.steer_count_rad),
     )
 
 

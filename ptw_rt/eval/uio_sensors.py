@@ -31,7 +31,7 @@ def drive_stage(ev: Evaluation, design, settings, roll_noise_deg: float = ROLL_S
     E, S = ev.estimates, ev.samples
     st, out = cus.new_state(), cus.new_output()
     zero, cpr = settings.sensors.steer_zero_count, settings.sensors.steer_counts_per_rev
-    prm, tables = cus.stage_params(design, steer_quantum=2.0 * math.pi / cpr), cus.stage_tables(design)
+    prm, tables = cus.stage_params(design, steer_quantum=settings.sensors.steer_count_rad), cus.stage_tables(design)
     roll = ev.truth["roll"] + math.radians(roll_noise_deg) * rng.standard_normal(len(ev.t))
     R = np.zeros((len(ev.t), cus.OUT_SIZE))
     for k in range(len(ev.t)):
