@@ -77,13 +77,14 @@ STATE = Layout(
     psi_hist=MAX_LATENCY_CYCLES,  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
     psi_head=1,
     rejected=1,  # consecutive rejected lateral-force innovations
+    quiet=1,  # consecutive lateral-force innovations applied and within QUIET_NU (when a reopened roll is safe)
     nu=1,  # whitened innovation e / sqrt(s) of the last scalar update (written by `_update`, gated out or not)
     # the stage's consistency monitor (attitude_stage):
     mean_lateral=1,  # running mean of the whitened lateral-force innovations
     mean_pitch=1,  # ... of the rotation-axis constraint's
     mean_course=1,  # ... of the GPS course's (updated per fix)
     inconsistent_for=1,  # s the monitor has still to hold its alarm
-    reacquired=1,  # 1 once this alarm has reopened the biases (once per alarm)
+    reacquired=1,  # 1 once this alarm has reopened the biases, 2 once it has reopened the roll too (once per alarm)
     course_rejected=1,  # consecutive GPS course fixes gated out
     held=1,  # consecutive cycles that integrated a held rate
     corrupt_run=1,  # cycles with corrupt input in the current burst (clean gaps shorter than BURST_GAP allowed)
@@ -99,6 +100,7 @@ STATE = Layout(
     ST_PSI_HIST,
     ST_PSI_HEAD,
     ST_REJECTED,
+    ST_QUIET,
     ST_NU,
     ST_MEAN_LATERAL,
     ST_MEAN_PITCH,
@@ -130,6 +132,14 @@ MAX_LATERAL_ACCEL = 12.0
 BURST_CYCLES = 10
 BURST_GAP = 10
 _CORRUPT_INPUT = REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
+# The roll is reopened after an alarm (`_reacquire_roll`; the biases at once) only once the lateral force has been
+# explained for QUIET_CYCLES in a row, each innovation within QUIET_NU of its sd: the roll reopened by its initial
+# spread (11 deg) widens the gate of the next lateral-force update, and in a slide, or a wheel unloaded in its
+# recovery, the specific force is one no lean explains: it moved the roll 44-55 deg in one cycle (random
+# combined-perturbation rides, docs/estimator.md "Attitude consistency"). A bias that stepped shows as a shift of
+# 1-3 sd that a white sequence does not have, well within QUIET_NU most cycles, so it is not kept waiting.
+QUIET_CYCLES = 20
+QUIET_NU = 3.0
 ACCEL_TRUSTED_MIN_G = 0.5
 ACCEL_TRUSTED_MAX_G = 2.0
 # s between GPS fixes: the contract's 10 Hz GPS_Velocity (a slower serial receiver only makes the course's
@@ -384,6 +394,7 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
         P[X_BAY, X_BAY] = prm[A_INIT_ACCEL_BIAS_SD] ** 2
     st[ST_PSI_INIT] = 0.0
     st[ST_REJECTED] = 0.0
+    st[ST_QUIET] = 0.0
     for k in range(MAX_LATENCY_CYCLES):
         st[ST_PSI_HIST + k] = 0.0
     st[ST_INIT] = 1.0
@@ -512,6 +523,7 @@ def attitude_step(
             variance += (h * UNMEASURED_RATE_SD / dt) ** 2 * 0.01
         accepted = _update(st, H, prev[PREV_FY] - predicted, variance, gate)
         nu_lateral = st[ST_NU]
+        st[ST_QUIET] = st[ST_QUIET] + 1.0 if accepted and abs(nu_lateral) <= QUIET_NU else 0.0
         if accepted:
             st[ST_REJECTED] = 0.0
         else:
@@ -748,6 +760,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         st[ST_CLEAN_RUN] += 1.0
         if st[ST_CLEAN_RUN] == 1.0 and st[ST_CORRUPT_RUN] >= BURST_CYCLES:
             _reacquire_biases(st, prm)  # the burst is over (for now): what it left is doubted, once
+            _reacquire_roll(st, prm)
             st[ST_CORRUPT_RUN] = 0.0
         if st[ST_CLEAN_RUN] >= BURST_GAP:
             st[ST_CORRUPT_RUN] = 0.0
@@ -762,12 +775,17 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
 @njit(cache=True)
 def _reacquire_biases(st: np.ndarray, prm: np.ndarray) -> None:
     """The innovations contradict the biases the filter believes (a gyro whose bias stepped, a scale error):
-    reopen the biases' and the roll's uncertainty by their initial spread so the data can move them again."""
+    reopen the biases' uncertainty by their initial spread so the data can move them again."""
     P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
     for b in (X_BP, X_BQ, X_BR):
         P[b, b] += prm[A_INIT_GYRO_BIAS_SD] ** 2
     P[X_BAY, X_BAY] += prm[A_INIT_ACCEL_BIAS_SD] ** 2
-    P[X_PHI, X_PHI] += prm[A_INIT_ROLL_SD] ** 2
+
+
+@njit(cache=True)
+def _reacquire_roll(st: np.ndarray, prm: np.ndarray) -> None:
+    """... and the roll's, which those biases have moved for as long as the filter believed them (QUIET_*)."""
+    st[ST_P + X_PHI * N_X + X_PHI] += prm[A_INIT_ROLL_SD] ** 2
 
 
 @njit(cache=True)
@@ -812,9 +830,13 @@ def consistency_monitor(st: np.ndarray, prm: np.ndarray, out: np.ndarray, riding
         st[ST_INCONSISTENT_FOR] -= dt
     if st[ST_INCONSISTENT_FOR] <= 0.0:
         st[ST_REACQUIRED] = 0.0
-    elif riding and st[ST_REACQUIRED] == 0.0:  # an alarm raised at a stop re-learns once riding
-        _reacquire_biases(st, prm)
-        st[ST_REACQUIRED] = 1.0
+    elif riding:  # an alarm raised at a stop re-learns once riding
+        if st[ST_REACQUIRED] == 0.0:
+            _reacquire_biases(st, prm)
+            st[ST_REACQUIRED] = 1.0
+        if st[ST_REACQUIRED] == 1.0 and st[ST_QUIET] >= QUIET_CYCLES:  # the roll once a slide is over
+            _reacquire_roll(st, prm)
+            st[ST_REACQUIRED] = 2.0
     out[OUT_CONSISTENCY] = stat
     out[OUT_INCONSISTENT] = 1.0 if st[ST_INCONSISTENT_FOR] > 0.0 else 0.0
 
