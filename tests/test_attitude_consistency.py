@@ -96,7 +96,7 @@ def test_an_alarm_in_a_slide_reopens_the_roll_only_once_the_lateral_force_is_exp
     out = np.zeros(att.OUT_SIZE)
     out[att.OUT_OK] = 1.0
     out[att.OUT_NU_LATERAL] = 11.0  # a slide: the lateral force far beyond the gate, cycle after cycle
-    st[att.ST_MEAN_LATERAL] = 1.0  # seven white sd of the running mean: an alarm
+    st[att.ST_MEAN_LATERAL] = 1.0  # ten white sd of the running mean (0.5 s of 10 ms cycles): an alarm
     att.consistency_monitor(st, prm, out, True)
     assert out[att.OUT_INCONSISTENT] == 1.0
     assert P[att.X_BP, att.X_BP] > 1e-5 and P[att.X_BAY, att.X_BAY] > 1e-3  # the biases at once

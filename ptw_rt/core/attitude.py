@@ -135,7 +135,7 @@ _CORRUPT_INPUT = REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRO
 # The roll is reopened after an alarm (`_reacquire_roll`; the biases at once) only once the lateral force has been
 # explained for QUIET_CYCLES in a row, each innovation within QUIET_NU of its sd: the roll reopened by its initial
 # spread (11 deg) widens the gate of the next lateral-force update, and in a slide, or a wheel unloaded in its
-# recovery, the specific force is one no lean explains: it moved the roll 44-55 deg in one cycle (random
+# recovery, the specific force is one no lean explains: it moved the roll 22-44 deg in one cycle (random
 # combined-perturbation rides, docs/estimator.md "Attitude consistency"). A bias that stepped shows as a shift of
 # 1-3 sd that a white sequence does not have, well within QUIET_NU most cycles, so it is not kept waiting.
 QUIET_CYCLES = 20
