@@ -90,9 +90,7 @@ OUTPUTS = Layout(
     diverged=1,  # 1: the filter was reset this cycle
     tyre_scale=1,  # k: the tyres' small-slip stiffness over the nominal file's
     tyre_log_sd=1,  # sd of log k (posterior spread)
-    tyre_map_scale=1,  # k of the most likely hypothesis
-    tyre_map_weight=1,  # its posterior weight
-    tyre_nis=1,  # its windowed mean normalised innovation (consistency; expected kf.N_Y)
+    tyre_nis=1,  # the most likely hypothesis' windowed mean normalised innovation (consistency; expected kf.N_Y)
     tyre_nis_fast=1,  # ... over the short window
     tyre_learning=1,  # 1: this cycle's evidence moved the estimate
     tyre_evidence=1,  # s of such cycles behind the estimate, faded with the bank's memories (what validity rests on)
@@ -105,8 +103,6 @@ OUTPUTS = Layout(
     OUT_DIVERGED,
     OUT_TYRE_SCALE,
     OUT_TYRE_LOG_SD,
-    OUT_TYRE_MAP_SCALE,
-    OUT_TYRE_MAP_WEIGHT,
     OUT_TYRE_NIS,
     OUT_TYRE_NIS_FAST,
     OUT_TYRE_LEARNING,
@@ -292,8 +288,6 @@ def lateral_stage(
         bank_out[tb.OUT_OPERATING_SCALE] = bank_out[tb.OUT_SCALE]
     out[OUT_TYRE_SCALE] = bank_out[tb.OUT_SCALE]
     out[OUT_TYRE_LOG_SD] = bank_out[tb.OUT_LOG_SD]
-    out[OUT_TYRE_MAP_SCALE] = bank_out[tb.OUT_MAP_SCALE]
-    out[OUT_TYRE_MAP_WEIGHT] = bank_out[tb.OUT_MAP_WEIGHT]
     out[OUT_TYRE_NIS] = bank_out[tb.OUT_MAP_NIS]
     out[OUT_TYRE_NIS_FAST] = bank_out[tb.OUT_MAP_NIS_FAST]
     out[OUT_TYRE_LEARNING] = bank_out[tb.OUT_LEARNING]
