@@ -189,3 +189,37 @@ def test_a_heading_beyond_the_gate_is_taken_from_the_course_again():
     assert abs(heading_error[520]) > math.radians(20.0)  # refused at first: one bad fix is not believed
     back = np.flatnonzero(np.abs(heading_error) < math.radians(1.0))
     assert back[back > 500][0] * DT <= 5.0 + 1.2  # within COURSE_REINIT_FIXES fixes and one more
+
+
+def test_a_sideslip_a_slide_left_far_off_is_restarted_not_matched_by_the_heading():
+    """A slide can leave v_y metres per second off (the random ride that found it: 6 m/s at 18 m/s, true 0).
+    The course then refuses fix after fix; re-taking the heading from the course while keeping that v_y made
+    heading + v_y/u fit the course with both wrong, and the roll drifted 7 deg off on the straight after.
+    The restart puts the sideslip back at its prior: the roll stays right and v_y returns to the truth."""
+    t = np.arange(0, 20, DT)
+    u = np.full_like(t, 18.0)
+    phi = np.zeros_like(t)
+    r = np.zeros_like(t)
+    settings = load_settings(DEFAULT_CONFIG)
+    prm = att.attitude_params(DT, G, 0.5, 0.0, settings.estimator.attitude, 0.1)
+    p, q, rb, fy, fz, psi = _ride(phi, r, u, 0.5, 0.0, 1)
+    st = att.new_state()
+    out = np.zeros(att.OUT_SIZE)
+    roll_error = np.zeros(len(t))
+    vy = np.zeros(len(t))
+    heading_error = np.zeros(len(t))
+    for k in range(len(t)):
+        if k == 500:
+            st[att.ST_X + att.X_VY] = 6.0  # what the slide left
+        course_new = k % 10 == 4 and k >= 10
+        course = psi[k - 10] if course_new else 0.0
+        att.attitude_step(
+            st, out, prm, p[k], q[k], rb[k], fy[k], fz[k], u[k], 0.1, True, True, course, course_new, False
+        )
+        roll_error[k] = out[att.OUT_ROLL] - phi[k]
+        vy[k] = out[att.OUT_VY]
+        heading_error[k] = (out[att.OUT_HEADING] - psi[k] + math.pi) % (2 * math.pi) - math.pi
+    after = t >= 7.0  # the course refuses fixes for 1 s, then heading and sideslip restart
+    assert np.max(np.abs(vy[after])) < 0.5
+    assert np.max(np.abs(heading_error[after])) < math.radians(2.0)
+    assert np.max(np.abs(roll_error[t >= 5.0])) < math.radians(1.0)

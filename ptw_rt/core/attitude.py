@@ -150,6 +150,8 @@ NU_CLIP = 2.0  # standard deviations: bound of each whitened innovation in the c
 # that drifted beyond the gate (a long GPS outage on a biased yaw gyro) would otherwise refuse every fix
 # for the rest of the ride, and with them the yaw-gyro bias's only reference while riding
 COURSE_REINIT_FIXES = 10
+INITIAL_VY_SD = 0.5  # m/s: a gripping vehicle's sideslip velocity, a priori
+INITIAL_AV_SD = 1.0  # m/s^2: its rate
 
 # ---- parameters (float64 vector: `attitude_params` builds the filter's from the config, `build_params` all) ----
 PARAMS = Layout(
@@ -367,6 +369,20 @@ def _clear_h(H: np.ndarray) -> None:
         H[i] = 0.0
 
 
+@njit(cache=True, inline="always")
+def _restart_sideslip(x: np.ndarray, P: np.ndarray) -> None:
+    """v_y and its derivative back to their prior (zero, a gripping vehicle's), uncorrelated with the rest."""
+    for i in range(N_X):
+        P[X_VY, i] = 0.0
+        P[i, X_VY] = 0.0
+        P[X_AV, i] = 0.0
+        P[i, X_AV] = 0.0
+    x[X_VY] = 0.0
+    x[X_AV] = 0.0
+    P[X_VY, X_VY] = INITIAL_VY_SD**2
+    P[X_AV, X_AV] = INITIAL_AV_SD**2
+
+
 @njit(cache=True)
 def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     """(Re)start roll, heading and sideslip; keep the biases and their covariance."""
@@ -380,12 +396,9 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
                 P[i, j] = 0.0
     x[X_PHI] = roll
     x[X_PSI] = 0.0
-    x[X_VY] = 0.0
-    x[X_AV] = 0.0
     P[X_PHI, X_PHI] = prm[A_INIT_ROLL_SD] ** 2
     P[X_PSI, X_PSI] = 1.0
-    P[X_VY, X_VY] = 0.5**2
-    P[X_AV, X_AV] = 1.0
+    _restart_sideslip(x, P)
     if not keep_biases:
         for b in (X_BP, X_BQ, X_BR):
             x[b] = 0.0
@@ -585,7 +598,12 @@ def attitude_step(
             else:
                 st[ST_COURSE_REJECTED] += 1.0
                 if st[ST_COURSE_REJECTED] >= COURSE_REINIT_FIXES:
-                    st[ST_PSI_INIT] = 0.0  # the next fix sets the heading
+                    # heading and sideslip together contradict the GPS: either may be wrong, and a slide can leave
+                    # v_y far off (a sideslip of 20 deg kept, and the heading set to match it, then drove the roll
+                    # 7 deg off on a straight), so both restart: the sideslip at its prior, the heading from the
+                    # next fix
+                    _restart_sideslip(x, P)
+                    st[ST_PSI_INIT] = 0.0
                     st[ST_COURSE_REJECTED] = 0.0
             nu_course = st[ST_NU]
             course_fix = 1.0
