@@ -154,3 +154,14 @@ def test_a_bad_or_unreachable_scheduler_is_one_line(tree, tmp_path, address):
     proc = _cli(["replay", top, "--out", tmp_path / "o", "--dask", address, "--no-progress"], tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "Dask scheduler" in proc.stderr, proc.stderr
+
+
+def test_dask_with_one_log_says_it_replays_here(tree, tmp_path):
+    """One log needs no cluster: it is replayed in this process, and the option is answered, not ignored."""
+    base, top, expected = tree
+    rel = next(iter(expected))
+    out = tmp_path / "one.log"
+    proc = _cli(["replay", top / rel, "--out", out, "--dask", "tcp://127.0.0.1:1", "--no-progress"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "replay: one log is replayed in this process" in proc.stderr
+    assert out.read_bytes() == expected[rel]

@@ -25,6 +25,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "_numba_cache",
         "_deferred_imports",
         "progress",
+        "parallel",
     ),  # shared plumbing: no project imports beyond these
     ("model",),  # vehicle parameters, Sharp's matrices
     ("settings",),  # the typed config file

@@ -69,6 +69,7 @@ from ptw_rt.io.logformats import (
     open_writer,
     writer_format,
 )
+from ptw_rt.parallel import worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
 from ptw_rt.untrusted import file_kind
@@ -567,12 +568,15 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
     results: dict[int, dict[str, Any]] = {}
     if len(jobs) == 1:
         src, dst, csv = jobs[0]
+        if getattr(args, "dask", None):
+            # shipping one log to a cluster would only add the transfer: say so rather than ignore the option
+            err.write("replay: one log is replayed in this process; --dask spreads several logs over a cluster\n")
         bar = Progress(1.0, label=f"replay {src.name}", stream=err, delay=0.5) if progress else None
         results[0] = replay_log(src, dst, csv, config, design_file, progress=bar, max_gap=max_gap)
         if bar is not None:
             bar.finish()
     else:
-        workers = max(1, min(args.jobs or os.cpu_count() or 1, len(jobs)))
+        workers = worker_count(args.jobs, len(jobs))
         bar = Progress(len(jobs), label="replay", stream=err) if progress else None
 
         def done(i: int, result: dict[str, Any]) -> None:

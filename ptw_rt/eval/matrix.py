@@ -22,7 +22,6 @@ otherwise reported 'not available') and the time `mu_drop`'s estimates take to f
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table
+from ptw_rt.parallel import worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress  # noqa: F401 - moved to the plumbing layer; used below
 
@@ -345,7 +345,7 @@ def run_wrong_start(job: tuple) -> dict:
 
 def _map(fn: Callable, jobs: list, workers: int | None, progress: Progress | None, name: Callable) -> list:
     """fn over jobs on `workers` processes (1: in this process), results in job order."""
-    workers = max(1, min(workers or os.cpu_count() or 1, len(jobs) or 1))
+    workers = worker_count(workers, len(jobs))
     results: list = [None] * len(jobs)
     if workers == 1:
         for i, job in enumerate(jobs):
@@ -423,7 +423,7 @@ def run_matrix(
         "wrong_start": ws,
         "targets": targets,
         "wall_s": round(wall, 1),
-        "workers": max(1, min(workers or os.cpu_count() or 1, len(all_jobs) or 1)),
+        "workers": worker_count(workers, len(all_jobs)),
     }
 
 
