@@ -220,7 +220,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="issue #12's matrix: every scenario x {nominal, tyres x0.7, x1.3, mu 0.85, mass +50 kg}, in parallel",
     )
     p.add_argument(
-        "--jobs", type=_worker_count, default=None, help="with --matrix: worker processes (default: all cores)"
+        "--random",
+        type=int,
+        default=None,
+        metavar="N",
+        help="N rides with every perturbation drawn at once (tyres, friction, payload, IMU, encoder zero, rider),"
+        " scored against the promises, in parallel; each worst ride printed with the command that replays it",
+    )
+    p.add_argument(
+        "--random-seed", type=int, default=0, metavar="G", help="with --random: which set of rides (default 0)"
+    )
+    p.add_argument(
+        "--jobs",
+        type=_worker_count,
+        default=None,
+        help="with --matrix or --random: worker processes (default: every core this process may use)",
     )
     p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
     p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE", help="plant perturbation")

@@ -37,6 +37,33 @@ def test_valid_stiffness_stats_on_synthetic_arrays():
     assert none["valid_frames"] == 0 and none["mean_abs_err_pct"] is None and none["valid_share_second_half"] == 0.0
 
 
+def test_roll_valid_stats_score_only_the_frames_flagged_valid():
+    """The roll's valid bit is a promise: its figure is the largest error over the scored frames flagged valid."""
+    from types import SimpleNamespace
+
+    from ptw_rt.core import layout as L  # noqa: N812
+
+    n = 100
+    E = np.zeros((n, L.ESTIMATES_SIZE))
+    roll = np.zeros(n)
+    E[:, L.E_ROLL] = np.radians(0.5)
+    E[60:70, L.E_ROLL] = np.radians(5.0)  # 5 deg off, not flagged valid: allowed
+    E[:, L.E_VALID] = L.V_ROLL
+    E[60:70, L.E_VALID] = 0
+    E[5, L.E_ROLL] = np.radians(9.0)  # flagged valid but not scored (before settle): not counted
+    mask = np.arange(n) >= 10
+    ev = SimpleNamespace(estimates=E, mask=mask, truth={"roll": roll})
+    s = mx.roll_valid_stats(ev, 3.0)
+    assert s["max_err_deg"] == pytest.approx(0.5) and s["tolerance_deg"] == 3.0
+    assert s["share"] == pytest.approx(80 / 90, abs=1e-3)
+    E[80, L.E_ROLL] = np.radians(3.5)  # one valid frame beyond the tolerance breaks the promise
+    broken = mx.roll_valid_stats(ev, 3.0)
+    assert broken["max_err_deg"] == pytest.approx(3.5)
+    assert mx._roll_valid_ok(broken) is False and mx._roll_valid_ok(s) is True
+    E[:, L.E_VALID] = 0
+    assert mx.roll_valid_stats(ev, 3.0)["max_err_deg"] is None  # never valid: nothing wrong was published
+
+
 def test_settle_time_and_cornering_seconds():
     t = np.arange(0, 40, 0.01)
     truth = np.where(t < 20, 1000.0, 600.0)
@@ -60,6 +87,7 @@ def _cell(
     share=0.8,
     uio_pct=18.0,
     alarms=0,
+    roll_valid_err=0.4,
 ):
     sv = {
         "valid_frames": 100,
@@ -73,6 +101,7 @@ def _cell(
         "metrics": {
             "roll_rmse_deg": {"ours": ours, "peer": peer, "uihosmo": 9.0, "kinematic": 3.0, "complementary": 0.9},
             "roll_ratio_to_peer": ours / peer,
+            "roll_valid": {"max_err_deg": roll_valid_err, "tolerance_deg": 3.0, "share": 0.9},
             "torque": {
                 "rmse_nm": 1.0,
                 "peak_nm": 10.0,
@@ -101,6 +130,7 @@ def test_targets_met_and_each_miss_flagged():
         "stiffness_valid_max_le_20pct": dict(err=(5, 25)),
         "stiffness_valid_ge_50pct_second_half": dict(share=0.4),
         "no_false_alarm": dict(alarms=3),
+        "roll_valid_within_tolerance": dict(roll_valid_err=3.2),
     }
     for target, kwargs in misses.items():
         cells = copy.deepcopy(good) + [_cell(variant="tyres x0.7", **kwargs)]

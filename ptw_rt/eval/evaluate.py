@@ -455,6 +455,10 @@ def run_evaluate(args) -> int:
         from ptw_rt.eval.matrix import run_matrix_command
 
         return run_matrix_command(args)
+    if getattr(args, "random", None) is not None:
+        from ptw_rt.eval.random_rides import run_random_command
+
+        return run_random_command(args)
     if not args.all and not args.scenario:
         raise UserFacingError("give --scenario NAME, --all or --matrix")
     if args.scenario and args.scenario not in SCENARIOS:

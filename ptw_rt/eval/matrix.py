@@ -149,7 +149,20 @@ def learning_times(evaluation, after: float) -> dict:
     return out
 
 
-def cell_metrics(evaluation) -> dict:
+def roll_valid_stats(evaluation, tolerance_deg: float | None) -> dict:
+    """The roll's valid bit as the promise it is: the largest |error| over the scored frames flagged valid, against
+    the tolerance the config documents (`estimator.supervisor.roll_tolerance_deg`), and the share flagged valid."""
+    E, m = evaluation.estimates, evaluation.mask
+    valid = m & ((E[:, L.E_VALID].astype(np.int64) & L.V_ROLL) != 0)
+    err = np.abs(E[:, L.E_ROLL] - evaluation.truth["roll"])
+    return {
+        "max_err_deg": _r(math.degrees(float(err[valid].max()))) if valid.any() else None,
+        "tolerance_deg": tolerance_deg,
+        "share": _r(float(valid.sum()) / float(m.sum())) if m.any() else None,
+    }
+
+
+def cell_metrics(evaluation, roll_tolerance_deg: float | None = None) -> dict:
     """Everything the matrix prints for one ride (see the module docstring)."""
     t, E, tr, m, b = evaluation.t, evaluation.estimates, evaluation.truth, evaluation.mask, evaluation.baselines
     roll = tr["roll"][m]
@@ -182,6 +195,7 @@ def cell_metrics(evaluation) -> dict:
             "complementary": roll_rmse(b.get("complementary_roll")),
         },
         "roll_ratio_to_peer": _r(ours / peer) if ours is not None and peer else None,
+        "roll_valid": roll_valid_stats(evaluation, roll_tolerance_deg),
         "torque": {
             "rmse_nm": _r(t_rmse),
             "peak_nm": _r(t_peak),
@@ -237,6 +251,12 @@ def _ok(value, limit) -> bool | None:
     return None if value is None else bool(value <= limit)
 
 
+def _roll_valid_ok(stats: dict | None) -> bool | None:
+    if not stats or stats["tolerance_deg"] is None:
+        return None
+    return stats["max_err_deg"] is None or stats["max_err_deg"] <= stats["tolerance_deg"]
+
+
 def cell_targets(cell: dict) -> dict[str, bool | None]:
     """The per-cell targets of issue #12 (None: not applicable / no data)."""
     m = cell["metrics"]
@@ -244,6 +264,8 @@ def cell_targets(cell: dict) -> dict[str, bool | None]:
     out: dict[str, bool | None] = {
         "roll_le_peer": None if r["ours"] is None or r["peer"] is None else bool(r["ours"] <= r["peer"]),
         "roll_le_1deg": _ok(r["ours"], ROLL_MAX_DEG),
+        # the valid bit's promise (docs/estimator.md): never set while the roll is beyond the documented tolerance
+        "roll_valid_within_tolerance": _roll_valid_ok(m.get("roll_valid")),
         "torque_le_15pct_peak": _ok(m["torque"]["pct_of_peak"], TORQUE_MAX_PCT_OF_PEAK),
         "torque_le_half_zero": _ok(m["torque"]["ratio_to_zero"], TORQUE_MAX_RATIO_TO_ZERO),
     }
@@ -309,17 +331,19 @@ def check_targets(cells: Sequence[dict], wrong_start: dict | None = None) -> dic
 def run_cell(job: tuple) -> dict:
     """One matrix cell: (scenario, variant label, perturbations, seed, config, design file) -> cell dict."""
     from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.settings import load_settings
     from ptw_rt.sim.ride import parse_perturbations, simulate
 
     scenario, variant, perturb, seed, config, design_file = job
     t0 = time.perf_counter()
     ride = simulate(scenario, seed=seed, vehicle=config, perturbation=parse_perturbations(list(perturb)))
     evaluation = evaluate_ride(ride, config, design_file)
+    tolerance = load_settings(config).estimator.roll_tolerance_deg
     cell = {
         "scenario": scenario,
         "variant": variant,
         "perturb": list(perturb),
-        "metrics": cell_metrics(evaluation),
+        "metrics": cell_metrics(evaluation, tolerance),
         "result": evaluation.result,
     }
     if scenario == "mu_drop":
@@ -452,7 +476,7 @@ def _f(v, w: int = 7, nd: int = 2) -> str:
 def cell_table(cells: Sequence[dict]) -> str:
     """One line per cell: roll (ours/peer/ratio, UIHOSMO, kin, comp), torque, stiffness valid, targets."""
     head = (
-        f"{'scenario':<16}{'variant':<12}{'roll':>6}{'peer':>6}{'r/p':>6}{'uio':>7}{'kin':>6}{'comp':>6}"
+        f"{'scenario':<16}{'variant':<12}{'roll':>6}{'peer':>6}{'r/p':>6}{'rV':>6}{'uio':>7}{'kin':>6}{'comp':>6}"
         f"{'tau%pk':>7}{'tau/0':>6}{'uio%pk':>7}"
         f"  {'stiffness valid: mean|max|err| % (share 2nd half) Caf Cgf Car Cgr':<74}"
         "  missed"
@@ -473,13 +497,15 @@ def cell_table(cells: Sequence[dict]) -> str:
         missed = [k for k, v in (c.get("targets") or {}).items() if v is False]
         lines.append(
             f"{c['scenario']:<16}{c['variant']:<12}{_f(r['ours'], 6)}{_f(r['peer'], 6)}"
-            f"{_f(m['roll_ratio_to_peer'], 6)}{_f(r['uihosmo'], 7, 1)}{_f(r['kinematic'], 6)}"
+            f"{_f(m['roll_ratio_to_peer'], 6)}{_f((m.get('roll_valid') or {}).get('max_err_deg'), 6)}"
+            f"{_f(r['uihosmo'], 7, 1)}{_f(r['kinematic'], 6)}"
             f"{_f(r['complementary'], 6)}{_f(tq['pct_of_peak'], 7, 1)}{_f(tq['ratio_to_zero'], 6)}"
             f"{_f(tq.get('uihosmo_pct_of_peak'), 7, 1)}  "
             f"{' '.join(f'{x:>18}' for x in stiff):<74}  {', '.join(missed) or '-'}"
         )
     lines.append(
-        "roll: RMSE [deg] ours / Fusion AHRS peer / ours:peer / UIHOSMO diagnostic (seed 000 case 2) / kinematic /"
+        "roll: RMSE [deg] ours / Fusion AHRS peer / ours:peer; rV: our largest |error| [deg] while EST_Roll_Valid"
+        " (the promise: within roll_tolerance_deg); RMSE of the UIHOSMO diagnostic (seed 000 case 2) / kinematic /"
         " complementary;"
     )
     lines.append(

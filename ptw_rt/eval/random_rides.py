@@ -1,0 +1,256 @@
+"""Random combined-perturbation rides: what the matrix does not show (``ptw-rt evaluate --random N``).
+
+The matrix varies one thing at a time. A real scooter varies everything at once, so each ride here draws, from
+its own generator, every perturbation of ``DRAWS`` at once (tyres, friction, payload, IMU noise and biases, an
+encoder zero up to a count off, the rider's activity) and a noise seed; the scenarios are taken
+in turn. ``--random-seed G`` picks the set: ride ``i`` of set ``G`` is always the same ride, and its line carries
+the ``ptw-rt evaluate --scenario ... --seed ... --perturb ...`` command that replays it alone.
+
+Scored against the promises, not against tuning goals: roll never worse than the Fusion AHRS peer and within
+1 deg; the roll never VALID beyond its documented tolerance; the tyre stiffness never VALID beyond 20 % (within
+10 % on average); the rider torque within 15 % of its peak; and which rides raised a monitor's alarm (none was
+injected: on a ride whose encoder zero is right, an alarm is a false one; a zero a count off is below what the
+steer check is meant to flag, but may be).
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ptw_rt.eval.matrix import (
+    ROLL_MAX_DEG,
+    STIFFNESS_VALID_MAX_PCT,
+    STIFFNESS_VALID_MEAN_PCT,
+    TORQUE_MAX_PCT_OF_PEAK,
+    _map,
+    run_cell,
+)
+from ptw_rt.parallel import worker_count
+from ptw_rt.paths import DEFAULT_CONFIG
+from ptw_rt.progress import Progress
+
+# the scenarios in turn (ride i is SCENARIOS[i % 8])
+SCENARIOS = (
+    "handling_40_120",
+    "urban",
+    "slalom_30",
+    "radius_accel",
+    "mu_drop",
+    "dlc_50",
+    "dlc_100",
+    "sensor_faults",
+)
+# drawn in this order (the order is part of what makes ride i of set G the same ride everywhere), uniformly
+# within (low, high); the encoder zero in whole counts
+DRAWS = (
+    ("stiffness", 0.6, 1.4),  # tyres: pressure, wear, temperature
+    ("mu_scale", 0.7, 1.0),  # the road's friction, a factor on the scenario's
+    ("added_mass", -40.0, 40.0),  # kg: rider and luggage against the file's
+    ("imu_noise", 1.0, 2.0),
+    ("imu_bias", 1.0, 2.0),
+    ("steer_offset", -1, 1),  # counts: the encoder's zero
+    ("rider_noise", 1.0, 2.0),  # a busier rider
+)
+WHOLE_COUNTS = ("steer_offset",)
+NOISE_SEEDS = (20, 10000)  # the rides' noise seeds are drawn from [20, 10000): not the scenarios' own
+MAX_RIDES = 100_000
+WORST_SHOWN = 5
+
+
+def draw_ride(generator_seed: int, index: int) -> tuple[str, tuple[str, ...], int]:
+    """(scenario, perturbations, noise seed) of ride `index` of set `generator_seed`."""
+    rng = np.random.default_rng(1000 + index + 1000 * generator_seed)
+    perturb = []
+    for name, low, high in DRAWS:
+        value = float(rng.integers(low, high + 1)) if name in WHOLE_COUNTS else float(rng.uniform(low, high))
+        perturb.append(f"{name}={value:.3f}")
+    seed = int(rng.integers(*NOISE_SEEDS))
+    return SCENARIOS[index % len(SCENARIOS)], tuple(perturb), seed
+
+
+def reproduce_command(ride: dict) -> str:
+    args = ["ptw-rt", "evaluate", "--scenario", ride["scenario"], "--seed", str(ride["seed"])]
+    for p in ride["perturb"]:
+        args += ["--perturb", p]
+    return shlex.join(args)
+
+
+def _summary_of_cell(cell: dict, seed: int) -> dict:
+    m = cell["metrics"]
+    stiff = [s for s in m["stiffness_valid"].values() if s["valid_frames"]]
+    steer_zero = next((float(p.split("=")[1]) for p in cell["perturb"] if p.startswith("steer_offset=")), 0.0)
+    return {
+        "scenario": cell["scenario"],
+        "seed": seed,
+        "perturb": cell["perturb"],
+        "roll_rmse_deg": m["roll_rmse_deg"]["ours"],
+        "peer_roll_rmse_deg": m["roll_rmse_deg"]["peer"],
+        "roll_valid_max_err_deg": m["roll_valid"]["max_err_deg"],
+        "roll_tolerance_deg": m["roll_valid"]["tolerance_deg"],
+        "torque_pct_of_peak": m["torque"]["pct_of_peak"],
+        "stiffness_valid_max_err_pct": max((s["max_abs_err_pct"] for s in stiff), default=None),
+        "stiffness_valid_mean_err_pct": max((s["mean_abs_err_pct"] for s in stiff), default=None),
+        "alarm_cycles": m["alarm_cycles"],
+        "steer_zero_counts": steer_zero,
+    }
+
+
+def _ride_job(job: tuple) -> dict:
+    scenario, perturb, seed, config, design_file = job
+    cell = run_cell((scenario, "random", perturb, seed, config, design_file))
+    return _summary_of_cell(cell, seed)
+
+
+def _gt(value, limit) -> bool:
+    return value is not None and limit is not None and value > limit
+
+
+def summarise(rides: list[dict]) -> dict:
+    """The promises over the rides: counts, the largest figures, and the rides that broke or came nearest."""
+
+    def worst(key: str) -> list[dict]:
+        ranked = sorted((r for r in rides if r[key] is not None), key=lambda r: -r[key])
+        return [{key: r[key], "command": reproduce_command(r)} for r in ranked[:WORST_SHOWN]]
+
+    def largest(key: str):
+        values = [r[key] for r in rides if r[key] is not None]
+        return max(values) if values else None
+
+    roll_scored = [r for r in rides if r["roll_rmse_deg"] is not None and r["peer_roll_rmse_deg"] is not None]
+    alarmed = [any(r["alarm_cycles"].values()) for r in rides]
+    zero_right = [r["steer_zero_counts"] == 0.0 for r in rides]
+    promises = {
+        "roll_valid_within_tolerance": not any(
+            _gt(r["roll_valid_max_err_deg"], r["roll_tolerance_deg"]) for r in rides
+        ),
+        "stiffness_valid_max_le_20pct": not any(
+            _gt(r["stiffness_valid_max_err_pct"], STIFFNESS_VALID_MAX_PCT) for r in rides
+        ),
+    }
+    return {
+        "rides": len(rides),
+        "promises_kept": promises,
+        "roll": {
+            "le_peer": sum(r["roll_rmse_deg"] <= r["peer_roll_rmse_deg"] for r in roll_scored),
+            "scored": len(roll_scored),
+            "le_1deg": sum(r["roll_rmse_deg"] <= ROLL_MAX_DEG for r in roll_scored),
+            "largest_rmse_deg": largest("roll_rmse_deg"),
+            "largest_valid_err_deg": largest("roll_valid_max_err_deg"),
+            "worst_rmse": worst("roll_rmse_deg"),
+            "worst_valid_err": worst("roll_valid_max_err_deg"),
+            "worse_than_peer": [
+                {"roll": r["roll_rmse_deg"], "peer": r["peer_roll_rmse_deg"], "command": reproduce_command(r)}
+                for r in roll_scored
+                if r["roll_rmse_deg"] > r["peer_roll_rmse_deg"]
+            ],
+        },
+        "stiffness": {
+            "rides_valid": sum(r["stiffness_valid_max_err_pct"] is not None for r in rides),
+            "largest_valid_err_pct": largest("stiffness_valid_max_err_pct"),
+            "largest_valid_mean_err_pct": largest("stiffness_valid_mean_err_pct"),
+            "mean_le_10pct": sum(not _gt(r["stiffness_valid_mean_err_pct"], STIFFNESS_VALID_MEAN_PCT) for r in rides),
+            "worst_valid_err": worst("stiffness_valid_max_err_pct"),
+        },
+        "torque": {
+            "le_15pct_of_peak": sum(
+                r["torque_pct_of_peak"] is not None and r["torque_pct_of_peak"] <= TORQUE_MAX_PCT_OF_PEAK for r in rides
+            ),
+            "largest_pct_of_peak": largest("torque_pct_of_peak"),
+        },
+        "alarms": {
+            "rides_with_zero_right": sum(zero_right),
+            "alarmed_with_zero_right": sum(a and z for a, z in zip(alarmed, zero_right, strict=True)),
+            "rides_with_zero_a_count_off": len(rides) - sum(zero_right),
+            "alarmed_with_zero_a_count_off": sum(a and not z for a, z in zip(alarmed, zero_right, strict=True)),
+        },
+    }
+
+
+def run_random(
+    count: int,
+    generator_seed: int = 0,
+    *,
+    config: Path = DEFAULT_CONFIG,
+    design_file: Path | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> dict:
+    jobs = []
+    for i in range(count):
+        scenario, perturb, seed = draw_ride(generator_seed, i)
+        jobs.append((scenario, perturb, seed, config, design_file))
+    bar = Progress(len(jobs), label="random rides") if progress else None
+    t0 = time.perf_counter()
+    rides = _map(_ride_job, jobs, workers, bar, lambda j: f"{j[0]} {j[2]}")
+    if bar is not None:
+        bar.finish()
+    return {
+        "generator_seed": generator_seed,
+        "summary": summarise(rides),
+        "rides_detail": rides,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "workers": worker_count(workers, len(jobs)),
+    }
+
+
+def summary_text(result: dict) -> str:
+    s = result["summary"]
+    roll, st, tq, al = s["roll"], s["stiffness"], s["torque"], s["alarms"]
+    n = s["rides"]
+
+    def kept(name: str) -> str:
+        return "kept" if s["promises_kept"][name] else "BROKEN"
+
+    lines = [
+        f"{n} random rides (set {result['generator_seed']}) on {result['workers']} processes in {result['wall_s']} s",
+        f"roll: <= the peer on {roll['le_peer']} of {roll['scored']}, <= {ROLL_MAX_DEG:g} deg on {roll['le_1deg']};"
+        f" largest RMSE {roll['largest_rmse_deg']} deg",
+        f"roll while VALID: largest error {roll['largest_valid_err_deg']} deg"
+        f" (promise: within the documented tolerance, {kept('roll_valid_within_tolerance')})",
+        f"stiffness while VALID: on {st['rides_valid']} rides, largest error {st['largest_valid_err_pct']} %"
+        f" (promise: <= {STIFFNESS_VALID_MAX_PCT:g} %, {kept('stiffness_valid_max_le_20pct')}), largest mean"
+        f" {st['largest_valid_mean_err_pct']} %, mean <= {STIFFNESS_VALID_MEAN_PCT:g} % on {st['mean_le_10pct']}",
+        f"torque: <= {TORQUE_MAX_PCT_OF_PEAK:g} % of the peak on {tq['le_15pct_of_peak']}, largest"
+        f" {tq['largest_pct_of_peak']} %",
+        f"alarms (none injected): {al['alarmed_with_zero_right']} of {al['rides_with_zero_right']} rides with the"
+        f" encoder zero right, {al['alarmed_with_zero_a_count_off']} of {al['rides_with_zero_a_count_off']} with it"
+        " a count off",
+    ]
+    for title, items, key in (
+        ("largest roll error while VALID [deg]", roll["worst_valid_err"], "roll_valid_max_err_deg"),
+        ("largest roll RMSE [deg]", roll["worst_rmse"], "roll_rmse_deg"),
+        ("largest stiffness error while VALID [%]", st["worst_valid_err"], "stiffness_valid_max_err_pct"),
+    ):
+        lines.append(f"{title}:")
+        lines += [f"  {item[key]:>7}  {item['command']}" for item in items]
+    if roll["worse_than_peer"]:
+        lines.append("roll worse than the peer (ours / peer [deg]):")
+        lines += [f"  {w['roll']} / {w['peer']}  {w['command']}" for w in roll["worse_than_peer"]]
+    return "\n".join(lines)
+
+
+def run_random_command(args) -> int:
+    from ptw_rt.errors import UserFacingError
+
+    count = args.random
+    if not 1 <= count <= MAX_RIDES:
+        raise UserFacingError(f"--random takes a number of rides, 1 to {MAX_RIDES}, not {count}")
+    result = run_random(
+        count,
+        args.random_seed,
+        config=args.config,
+        design_file=args.design_file,
+        workers=getattr(args, "jobs", None),
+    )
+    if args.json:
+        json.dump(result, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(summary_text(result))
+    return 0

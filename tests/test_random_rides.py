@@ -1,0 +1,94 @@
+"""`ptw-rt evaluate --random N`: reproducible random combined-perturbation rides scored against the promises."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from ptw_rt.eval import random_rides as rr
+from ptw_rt.sim.ride import parse_perturbations
+
+
+def test_a_ride_is_the_same_ride_everywhere_and_every_draw_is_within_its_range():
+    assert rr.draw_ride(9, 0) == rr.draw_ride(9, 0)
+    assert rr.draw_ride(9, 0) != rr.draw_ride(10, 0)
+    ranges = {name: (low, high) for name, low, high in rr.DRAWS}
+    scenarios = set()
+    for i in range(64):
+        scenario, perturb, seed = rr.draw_ride(3, i)
+        scenarios.add(scenario)
+        assert rr.NOISE_SEEDS[0] <= seed < rr.NOISE_SEEDS[1]
+        parse_perturbations(list(perturb))  # what `ptw-rt evaluate --perturb` accepts
+        for item in perturb:
+            name, value = item.split("=")
+            low, high = ranges[name]
+            assert low <= float(value) <= high, item
+            if name in rr.WHOLE_COUNTS:
+                assert float(value) == round(float(value))
+    assert scenarios == set(rr.SCENARIOS)
+
+
+def _ride(**kw):
+    ride = {
+        "scenario": "urban",
+        "seed": 42,
+        "perturb": ["stiffness=0.800", "steer_offset=0.000"],
+        "roll_rmse_deg": 0.2,
+        "peer_roll_rmse_deg": 0.5,
+        "roll_valid_max_err_deg": 0.6,
+        "roll_tolerance_deg": 3.0,
+        "torque_pct_of_peak": 10.0,
+        "stiffness_valid_max_err_pct": 8.0,
+        "stiffness_valid_mean_err_pct": 4.0,
+        "alarm_cycles": {"plausibility": 0, "attitude_consistency": 0},
+        "steer_zero_counts": 0.0,
+    }
+    ride.update(kw)
+    return ride
+
+
+def test_the_summary_names_a_broken_promise_and_the_command_that_replays_it():
+    good = [_ride(), _ride(seed=43, steer_zero_counts=1.0, alarm_cycles={"plausibility": 12})]
+    s = rr.summarise(good)
+    assert all(s["promises_kept"].values())
+    assert s["roll"]["le_peer"] == 2 and s["alarms"]["alarmed_with_zero_a_count_off"] == 1
+    assert s["alarms"]["alarmed_with_zero_right"] == 0
+    bad = good + [_ride(seed=44, roll_rmse_deg=0.9, roll_valid_max_err_deg=3.4, stiffness_valid_max_err_pct=22.0)]
+    s = rr.summarise(bad)
+    assert s["promises_kept"] == {"roll_valid_within_tolerance": False, "stiffness_valid_max_le_20pct": False}
+    assert s["roll"]["worst_valid_err"][0]["command"] == (
+        "ptw-rt evaluate --scenario urban --seed 44 --perturb stiffness=0.800 --perturb steer_offset=0.000"
+    )
+    assert s["roll"]["worse_than_peer"][0]["roll"] == 0.9
+    text = rr.summary_text({"generator_seed": 0, "workers": 1, "wall_s": 1.0, "summary": s})
+    assert text.count("BROKEN") == 2 and "--seed 44" in text
+
+
+def test_the_command_runs_rides_and_prints_json():
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt", "evaluate", "--random", "2", "--random-seed", "5", "--jobs", "1", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    assert result["summary"]["rides"] == 2 and len(result["rides_detail"]) == 2
+    for ride, i in zip(result["rides_detail"], range(2), strict=True):
+        scenario, perturb, seed = rr.draw_ride(5, i)
+        assert (ride["scenario"], tuple(ride["perturb"]), ride["seed"]) == (scenario, perturb, seed)
+        assert ride["roll_rmse_deg"] is not None and ride["roll_tolerance_deg"] == 3.0
+
+
+@pytest.mark.parametrize("count", ["0", "-3", str(rr.MAX_RIDES + 1)])
+def test_a_count_out_of_range_is_one_line_and_exit_2(count):
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt", "evaluate", "--random", count],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
