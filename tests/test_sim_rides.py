@@ -121,15 +121,20 @@ def test_mu_drop_changes_the_truth_stiffness_and_the_grip(vehicle):
         ("handling_40_120", {"stiffness": 1.5}),
         ("handling_40_120", {"added_mass": 50.0}),
         ("handling_40_120", {"added_mass": -50.0}),
+        ("handling_40_120", {"stiffness": 0.9, "rear_stiffness": 0.7}),  # tyres that differ by axle
+        ("urban", {"front_stiffness": 1.25}),
     ],
 )
 def test_paper_perturbations_ride_and_set_the_truth(vehicle, name, pert):
     r = ride(name, **pert)
     assert r.crashed_at is None
     T = r.truth
-    scale = pert.get("stiffness", 1.0)
-    np.testing.assert_allclose(T["c_alpha_front"], T["mu"] * vehicle.c_af * scale)
-    np.testing.assert_allclose(T["c_gamma_front"], T["mu"] * vehicle.c_gf * scale)
+    front = pert.get("stiffness", 1.0) * pert.get("front_stiffness", 1.0)
+    rear = pert.get("stiffness", 1.0) * pert.get("rear_stiffness", 1.0)
+    np.testing.assert_allclose(T["c_alpha_front"], T["mu"] * vehicle.c_af * front)
+    np.testing.assert_allclose(T["c_gamma_front"], T["mu"] * vehicle.c_gf * front)
+    np.testing.assert_allclose(T["c_alpha_rear"], T["mu"] * vehicle.c_ar * rear)
+    np.testing.assert_allclose(T["c_gamma_rear"], T["mu"] * vehicle.c_gr * rear)
     assert np.abs(T["rider_torque"]).max() < 45.0
     assert np.abs(T["path_error"]).max() < 0.8
     if "mass_inertia" in pert:

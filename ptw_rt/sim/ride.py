@@ -108,6 +108,8 @@ TRUTH_UNITS = {
 PERTURB_KEYS = {
     "mass_inertia": "factor on every mass, inertia and the static front load (seed 000: 1.2)",
     "stiffness": "factor on all four tyre stiffnesses (seed 001: 0.5 .. 1.5)",
+    "front_stiffness": "factor on the front tyre's two stiffnesses, times `stiffness` (tyres that differ by axle)",
+    "rear_stiffness": "factor on the rear tyre's two stiffnesses, times `stiffness` (a worn or soft rear)",
     "added_mass": "kg added at the rear-frame CoM (rider/luggage; seed 001: -50 .. +50)",
     "mu": "constant road friction replacing the scenario's profile",
     "mu_scale": "factor on the scenario's friction profile",
@@ -127,6 +129,8 @@ PERTURB_KEYS = {
 class Perturbation:
     mass_inertia: float = 1.0
     stiffness: float = 1.0
+    front_stiffness: float = 1.0
+    rear_stiffness: float = 1.0
     added_mass: float = 0.0
     mu: float | None = None
     mu_scale: float = 1.0
@@ -160,7 +164,7 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
             raise UserFacingError(f"--perturb {item!r}: {text!r} is not a number") from None
         if not math.isfinite(value):
             raise UserFacingError(f"--perturb {item!r}: value must be finite")
-        if key in ("mass_inertia", "stiffness") and not 0.2 <= value <= 5.0:
+        if key in ("mass_inertia", "stiffness", "front_stiffness", "rear_stiffness") and not 0.2 <= value <= 5.0:
             raise UserFacingError(f"--perturb {item!r}: {key} is a factor, expected 0.2 .. 5")
         if key in ("mu", "mu_scale") and not 0.05 <= value <= 1.5:
             raise UserFacingError(f"--perturb {item!r}: {key} must be within 0.05 .. 1.5")
@@ -182,6 +186,9 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
 
 def perturbed_vehicle(p: VehicleParameters, pert: Perturbation) -> VehicleParameters:
     q = p.scaled(mass_inertia=pert.mass_inertia, stiffness=pert.stiffness)
+    if pert.front_stiffness != 1.0 or pert.rear_stiffness != 1.0:
+        f, r = pert.front_stiffness, pert.rear_stiffness
+        q = replace(q, c_af=q.c_af * f, c_gf=q.c_gf * f, c_ar=q.c_ar * r, c_gr=q.c_gr * r)
     if pert.added_mass:
         dm = pert.added_mass
         if q.m_r + dm <= 0.2 * q.m_r:
