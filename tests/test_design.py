@@ -232,3 +232,39 @@ def test_a_matrix_that_overflowed_is_not_stable():
     assert spectral_radius(np.array([[0.5, np.inf], [0.0, 0.5]])) == math.inf
     assert spectral_radius(np.array([[np.nan]])) == math.inf
     assert spectral_radius(np.diag([0.5, -0.9])) == pytest.approx(0.9)
+
+
+def test_a_vehicle_whose_case_2_floor_is_above_the_validity_speed_is_designed_and_the_diagnostic_waits(tmp_path):
+    """A front tyre 30 % softer than the file's lifts seed 000 case 2's detectability floor to ~76 km/h. Case 2 is
+    a diagnostic: the design must not refuse the vehicle (it did), and the runtime holds case 2 in reset below its
+    floor while every published estimate runs from the validity speed."""
+    from ptw_rt.core import diagnostics
+    from ptw_rt.core import layout as L  # noqa: N812
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import simulate
+
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    front = doc["vehicle"]["front_tyre"]
+    front["cornering_stiffness"] *= 0.7
+    front["camber_stiffness"] *= 0.7
+    cfg = tmp_path / "soft_front.yaml"
+    cfg.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "soft_front.npz"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt", "design", "--config", cfg, "--out", out],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    settings = load_settings(cfg)
+    data = load_design(out, settings.config_hash, cfg)
+    assert data.detectability_floor * 3.6 > 60.0 > settings.estimator.min_valid_speed_kmh
+    prm = diagnostics.build_params(settings, data)
+    assert prm[diagnostics.P_UH_MIN_SPEED] == pytest.approx(data.detectability_floor)
+    ev = evaluate_ride(simulate("urban", duration=30.0, vehicle=cfg), cfg, out)
+    slow = ev.estimates[:, L.E_SPEED] < 0.9 * data.detectability_floor
+    running = (ev.estimates[:, L.E_MODE] == L.MODE_VALID) & slow
+    assert running.sum() > 500  # the published estimates run in town
+    assert np.all(ev.estimates[running, L.E_ROLL_UIHOSMO] == 0.0)  # case 2 waits for its floor
+    assert np.all(np.isfinite(ev.estimates[running, L.E_ROLL]))
