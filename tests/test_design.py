@@ -268,3 +268,50 @@ def test_a_vehicle_whose_case_2_floor_is_above_the_validity_speed_is_designed_an
     assert running.sum() > 500  # the published estimates run in town
     assert np.all(ev.estimates[running, L.E_ROLL_UIHOSMO] == 0.0)  # case 2 waits for its floor
     assert np.all(np.isfinite(ev.estimates[running, L.E_ROLL]))
+
+
+def _vehicle_scaled_at_random(seed: int, spread: float) -> dict:
+    """The config with every vehicle number times U(1 - spread, 1 + spread) (the scratch sweep that found it)."""
+    import random
+
+    rng = random.Random(seed)
+
+    def walk(node):
+        if isinstance(node, dict):
+            return {k: (v if k in ("name", "gravity") else walk(v)) for k, v in node.items()}
+        if isinstance(node, (int, float)) and not isinstance(node, bool):
+            return node * rng.uniform(1 - spread, 1 + spread)
+        return node
+
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["vehicle"] = walk(doc["vehicle"])
+    return doc
+
+
+def test_a_vehicle_for_which_case_2_is_never_detectable_is_designed_and_estimated(tmp_path):
+    """Seed 000 case 2 is a diagnostic: a vehicle for which it is not strongly detectable at any speed (3 of 12
+    vehicles within +-30 % of this one) is designed all the same, case 2 never runs, and the published estimates
+    are right (until 2026-11-26 `design` refused such a vehicle)."""
+    from ptw_rt.core import layout as L  # noqa: N812
+    from ptw_rt.design.uihosmo import NEVER_DETECTABLE
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import simulate
+
+    cfg = tmp_path / "other.yaml"
+    cfg.write_text(yaml.safe_dump(_vehicle_scaled_at_random(1004, 0.3)))
+    out = tmp_path / "other.npz"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt", "design", "--config", cfg, "--out", out],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "case 2 not strongly detectable at any speed" in proc.stdout
+    settings = load_settings(cfg)
+    data = load_design(out, settings.config_hash, cfg)
+    assert data.detectability_floor == NEVER_DETECTABLE and not data.uh_detectable.any()
+    ev = evaluate_ride(simulate("dlc_50", vehicle=cfg), cfg, out)
+    assert np.all(ev.estimates[:, L.E_ROLL_UIHOSMO] == 0.0)
+    roll_err = np.degrees(ev.estimates[ev.mask, L.E_ROLL] - ev.truth["roll"][ev.mask])
+    assert np.sqrt(np.mean(roll_err**2)) < 0.5

@@ -13,7 +13,7 @@ from ptw_rt.design import kalman, tyre_bank, uio_sensors
 from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
 from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
-from ptw_rt.design.uihosmo import design_grid
+from ptw_rt.design.uihosmo import NEVER_DETECTABLE, design_grid
 from ptw_rt.errors import UserFacingError
 from ptw_rt.model.sharp import lpv_model
 from ptw_rt.output import emit
@@ -238,8 +238,13 @@ def format_check(result: dict[str, Any]) -> str:
     bg = result["between_grid"]
     lmi = ad["lmi"]
     lines += [
-        f"case 2 strongly detectable above {uh['detectability_floor_kmh']:.1f} km/h (held in reset below: a "
-        f"diagnostic); estimates valid above {uh['min_valid_speed_kmh']:.1f} km/h",
+        (
+            f"case 2 strongly detectable above {uh['detectability_floor_kmh']:.1f} km/h (held in reset below: a "
+            "diagnostic)"
+            if uh["detectability_floor_kmh"] < NEVER_DETECTABLE * 3.6
+            else "case 2 not strongly detectable at any speed for this vehicle (never run: a diagnostic)"
+        )
+        + f"; estimates valid above {uh['min_valid_speed_kmh']:.1f} km/h",
         f"between grid points ({bg['samples_per_interval']} per interval, interpolated gains): max rho "
         f"UIHOSMO {bg['uihosmo']['max_spectral_radius']:.4f} at {bg['uihosmo']['at_kmh']:.1f} km/h, "
         f"adaptive {bg['adaptive']['max_spectral_radius']:.4f} at {bg['adaptive']['at_kmh']:.1f} km/h, "

@@ -126,8 +126,14 @@ def choose_complement_rows(systems: list[UnknownInputSystem]) -> tuple[int, ...]
     return best
 
 
+# the floor of a vehicle for which case 2 is not strongly detectable at any speed a scooter rides: beyond every
+# speed (the runtime never runs it), and finite, as every number of the design file is
+NEVER_DETECTABLE = 1000.0  # m/s
+
+
 def detectability_floor(p: VehicleParameters, lo: float = 0.5, hi: float = 40.0, tol: float = 1e-3) -> float:
-    """Lowest speed [m/s] above which case 2 has only stable invariant zeros (bisection).
+    """Lowest speed [m/s] above which case 2 has only stable invariant zeros (bisection); NEVER_DETECTABLE if
+    it is not strongly detectable even at `hi`.
 
     Below it the UIHOSMO is not strongly detectable: its zero dynamics are unstable and
     no gain can fix that, so the runtime must not rely on it there.
@@ -137,7 +143,7 @@ def detectability_floor(p: VehicleParameters, lo: float = 0.5, hi: float = 40.0,
         return bool(np.all(invariant_zeros(case2(p, u)).real < 0))
 
     if not detectable(hi):
-        raise ValueError(f"case 2 is not strongly detectable even at {hi * 3.6:.0f} km/h")
+        return NEVER_DETECTABLE
     if detectable(lo):
         return lo
     while hi - lo > tol:
@@ -212,7 +218,9 @@ def design_grid(
     p: VehicleParameters, speeds: np.ndarray, decay_rate: float, output_weight: float, dt: float
 ) -> UihosmoDesign:
     floor = detectability_floor(p)
-    systems = [case2(p, u) for u in speeds if u >= floor]
+    # the transformation's rows are chosen where it is detectable; for a vehicle where it never is (the runtime
+    # never runs it), at every grid speed, so that the design file keeps its shape
+    systems = [case2(p, u) for u in speeds if u >= floor] or [case2(p, u) for u in speeds]
     rows = choose_complement_rows(systems)
     detectable = speeds >= floor
     points = [
