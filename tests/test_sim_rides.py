@@ -259,3 +259,33 @@ def test_an_impossible_road_is_reported_not_raised():
     assert r.crashed_at is not None and 2.5 < r.crashed_at < 10.0
     for v in r.truth.values():
         assert np.all(np.isfinite(v))
+
+
+def test_a_vehicle_no_simulated_rider_can_ride_is_one_line_from_every_command(tmp_path):
+    """The simulated rider is an LQR designed for the vehicle; a vehicle the config's ranges let through may have
+    none. `simulate()` says so in one line (NoRiderError), so `ptw-rt evaluate` (and the matrix) exit 2 with it
+    instead of a traceback (found on a vehicle within +-30 % of this one)."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from ptw_rt.errors import UserFacingError
+    from ptw_rt.paths import DEFAULT_CONFIG
+    from ptw_rt.sim.ride import NoRiderError
+
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["vehicle"]["front_tyre"]["relaxation_length"] = 1e-12
+    cfg = tmp_path / "no_rider.yaml"
+    cfg.write_text(yaml.safe_dump(doc))
+    with pytest.raises(NoRiderError, match="no simulated rider can ride this vehicle"):
+        simulate("dlc_50", duration=2.0, vehicle=cfg)
+    assert issubclass(NoRiderError, UserFacingError)
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt", "evaluate", "--scenario", "dlc_50", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "no simulated rider" in proc.stderr

@@ -198,6 +198,10 @@ def perturbed_vehicle(p: VehicleParameters, pert: Perturbation) -> VehicleParame
     return q
 
 
+class NoRiderError(UserFacingError):
+    """The simulated rider (an LQR) cannot be designed for this vehicle."""
+
+
 @dataclass
 class Ride:
     """One simulated ride: truth at 100 Hz, sensor streams, and what produced them."""
@@ -297,11 +301,17 @@ def simulate(
     wander = ou_noise(rider_rng, n_plan, PLAN_DT, rider.line_wander * pert.rider_noise, rider.line_wander_time)
     wander -= wander[0]  # start on the line
 
-    # the rider knows the bike (perturbed parameters) and the road he starts on
-    schedule = design_lean_schedule(plant_cfg, rider, float(mu[0]))
-    pp, m4inv = pack(plant_cfg)
-    lon = plant_cfg.longitudinal
-    rp = pack_rider(rider, p, effective_mass(p), lon.air_density * lon.drag_area, lon.rolling_resistance)
+    # the rider knows the bike (perturbed parameters) and the road he starts on. He is an LQR designed for it: a
+    # vehicle the config's ranges let through (or a perturbation of it) may have none, which is one line for the
+    # user, whichever command simulated
+    try:
+        with np.errstate(all="ignore"):
+            schedule = design_lean_schedule(plant_cfg, rider, float(mu[0]))
+            pp, m4inv = pack(plant_cfg)
+            lon = plant_cfg.longitudinal
+            rp = pack_rider(rider, p, effective_mass(p), lon.air_density * lon.drag_area, lon.rolling_resistance)
+    except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
+        raise NoRiderError(f"{sc.name}: no simulated rider can ride this vehicle ({exc})") from None
 
     path = plan.path
     x = np.zeros(NX)

@@ -10,7 +10,7 @@ import numpy as np
 
 from ptw_rt.errors import UserFacingError
 from ptw_rt.schema import ConfigError
-from ptw_rt.sim.ride import Ride, get_scenario, parse_perturbations, simulate
+from ptw_rt.sim.ride import NoRiderError, Ride, get_scenario, parse_perturbations, simulate
 from ptw_rt.sim.scenarios import SCENARIOS
 
 
@@ -108,10 +108,9 @@ def run_simulate(args) -> int:
             ride = simulate(
                 sc, seed=args.seed, duration=args.duration, vehicle=vehicle, perturbation=pert, progress=True
             )
-    except (np.linalg.LinAlgError, ArithmeticError) as exc:
-        # the simulated rider is an LQR designed for the vehicle: a vehicle the schema's ranges let through may have
-        # none (a relaxation length of 1e-12 m)
-        raise UserFacingError(f"--config {config}: no rider controller for this vehicle ({exc})") from None
+    except NoRiderError as exc:
+        # a vehicle the schema's ranges let through may have no rider (a relaxation length of 1e-12 m)
+        raise UserFacingError(f"--config {config}: {exc}") from None
     sim_wall = time.perf_counter() - t0
     from ptw_rt.sim.recording import write_ride
 
