@@ -163,11 +163,11 @@ def test_standstill_reads_gyro_biases():
     assert o[att.OUT_BR] == pytest.approx(0.002, abs=3e-4)
 
 
-def test_a_heading_beyond_the_gate_is_taken_from_the_course_again():
-    """A heading that drifted beyond the innovation gate (a long GPS outage on a biased yaw gyro) would refuse
-    every later fix; after COURSE_REINIT_FIXES refused fixes the next one sets it."""
+def _straight_with_course(speed: float, upset_state: int, upset_value: float, add: bool = False):
+    """20 s straight at `speed` with exact GPS course fixes; at 5 s one filter state is upset (set, or added to).
+    Returns the heading error, the roll error and v_y per cycle."""
     t = np.arange(0, 20, DT)
-    u = np.full_like(t, 20.0)
+    u = np.full_like(t, speed)
     phi = np.zeros_like(t)
     r = np.zeros_like(t)
     settings = load_settings(DEFAULT_CONFIG)
@@ -175,16 +175,25 @@ def test_a_heading_beyond_the_gate_is_taken_from_the_course_again():
     p, q, rb, fy, fz, psi = _ride(phi, r, u, 0.5, 0.0, 1)
     st = att.new_state()
     out = np.zeros(att.OUT_SIZE)
-    heading_error = np.zeros(len(t))
+    heading_error, roll_error, vy = np.zeros(len(t)), np.zeros(len(t)), np.zeros(len(t))
     for k in range(len(t)):
         if k == 500:
-            st[att.ST_X + att.X_PSI] += 0.5  # 29 deg off, far beyond the gate
+            st[att.ST_X + upset_state] = st[att.ST_X + upset_state] + upset_value if add else upset_value
         course_new = k % 10 == 4 and k >= 10
         course = psi[k - 10] if course_new else 0.0
         att.attitude_step(
             st, out, prm, p[k], q[k], rb[k], fy[k], fz[k], u[k], 0.1, True, True, course, course_new, False
         )
         heading_error[k] = (out[att.OUT_HEADING] - psi[k] + math.pi) % (2 * math.pi) - math.pi
+        roll_error[k] = out[att.OUT_ROLL] - phi[k]
+        vy[k] = out[att.OUT_VY]
+    return t, heading_error, roll_error, vy
+
+
+def test_a_heading_beyond_the_gate_is_taken_from_the_course_again():
+    """A heading that drifted beyond the innovation gate (a long GPS outage on a biased yaw gyro) would refuse
+    every later fix; after COURSE_REINIT_FIXES refused fixes the next one sets it."""
+    _, heading_error, _, _ = _straight_with_course(20.0, att.X_PSI, 0.5, add=True)  # 29 deg off, beyond the gate
     assert abs(heading_error[499]) < math.radians(1.0)
     assert abs(heading_error[520]) > math.radians(20.0)  # refused at first: one bad fix is not believed
     back = np.flatnonzero(np.abs(heading_error) < math.radians(1.0))
@@ -196,29 +205,7 @@ def test_a_sideslip_a_slide_left_far_off_is_restarted_not_matched_by_the_heading
     The course then refuses fix after fix; re-taking the heading from the course while keeping that v_y made
     heading + v_y/u fit the course with both wrong, and the roll drifted 7 deg off on the straight after.
     The restart puts the sideslip back at its prior: the roll stays right and v_y returns to the truth."""
-    t = np.arange(0, 20, DT)
-    u = np.full_like(t, 18.0)
-    phi = np.zeros_like(t)
-    r = np.zeros_like(t)
-    settings = load_settings(DEFAULT_CONFIG)
-    prm = att.attitude_params(DT, G, 0.5, 0.0, settings.estimator.attitude, 0.1)
-    p, q, rb, fy, fz, psi = _ride(phi, r, u, 0.5, 0.0, 1)
-    st = att.new_state()
-    out = np.zeros(att.OUT_SIZE)
-    roll_error = np.zeros(len(t))
-    vy = np.zeros(len(t))
-    heading_error = np.zeros(len(t))
-    for k in range(len(t)):
-        if k == 500:
-            st[att.ST_X + att.X_VY] = 6.0  # what the slide left
-        course_new = k % 10 == 4 and k >= 10
-        course = psi[k - 10] if course_new else 0.0
-        att.attitude_step(
-            st, out, prm, p[k], q[k], rb[k], fy[k], fz[k], u[k], 0.1, True, True, course, course_new, False
-        )
-        roll_error[k] = out[att.OUT_ROLL] - phi[k]
-        vy[k] = out[att.OUT_VY]
-        heading_error[k] = (out[att.OUT_HEADING] - psi[k] + math.pi) % (2 * math.pi) - math.pi
+    t, heading_error, roll_error, vy = _straight_with_course(18.0, att.X_VY, 6.0)  # what the slide left
     after = t >= 7.0  # the course refuses fixes for 1 s, then heading and sideslip restart
     assert np.max(np.abs(vy[after])) < 0.5
     assert np.max(np.abs(heading_error[after])) < math.radians(2.0)

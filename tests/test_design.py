@@ -234,6 +234,22 @@ def test_a_matrix_that_overflowed_is_not_stable():
     assert spectral_radius(np.diag([0.5, -0.9])) == pytest.approx(0.9)
 
 
+def _designed(doc: dict, stem):
+    """`ptw-rt design` on the config `doc` (written next to `stem`): (config, design file, settings, design data,
+    the command's summary), the command having succeeded."""
+    cfg, out = stem.with_suffix(".yaml"), stem.with_suffix(".npz")
+    cfg.write_text(yaml.safe_dump(doc))
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt", "design", "--config", cfg, "--out", out],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    settings = load_settings(cfg)
+    return cfg, out, settings, load_design(out, settings.config_hash, cfg), proc.stdout
+
+
 def test_a_vehicle_whose_case_2_floor_is_above_the_validity_speed_is_designed_and_the_diagnostic_waits(tmp_path):
     """A front tyre 30 % softer than the file's lifts seed 000 case 2's detectability floor to ~76 km/h. Case 2 is
     a diagnostic: the design must not refuse the vehicle (it did), and the runtime holds case 2 in reset below its
@@ -247,18 +263,7 @@ def test_a_vehicle_whose_case_2_floor_is_above_the_validity_speed_is_designed_an
     front = doc["vehicle"]["front_tyre"]
     front["cornering_stiffness"] *= 0.7
     front["camber_stiffness"] *= 0.7
-    cfg = tmp_path / "soft_front.yaml"
-    cfg.write_text(yaml.safe_dump(doc))
-    out = tmp_path / "soft_front.npz"
-    proc = subprocess.run(
-        [sys.executable, "-m", "ptw_rt", "design", "--config", cfg, "--out", out],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr
-    settings = load_settings(cfg)
-    data = load_design(out, settings.config_hash, cfg)
+    cfg, out, settings, data, _ = _designed(doc, tmp_path / "soft_front")
     assert data.detectability_floor * 3.6 > 60.0 > settings.estimator.min_valid_speed_kmh
     prm = diagnostics.build_params(settings, data)
     assert prm[diagnostics.P_UH_MIN_SPEED] == pytest.approx(data.detectability_floor)
@@ -297,19 +302,8 @@ def test_a_vehicle_for_which_case_2_is_never_detectable_is_designed_and_estimate
     from ptw_rt.eval.evaluate import evaluate_ride
     from ptw_rt.sim.ride import simulate
 
-    cfg = tmp_path / "other.yaml"
-    cfg.write_text(yaml.safe_dump(_vehicle_scaled_at_random(1004, 0.3)))
-    out = tmp_path / "other.npz"
-    proc = subprocess.run(
-        [sys.executable, "-m", "ptw_rt", "design", "--config", cfg, "--out", out],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr
-    assert "case 2 not strongly detectable at any speed" in proc.stdout
-    settings = load_settings(cfg)
-    data = load_design(out, settings.config_hash, cfg)
+    cfg, out, settings, data, summary = _designed(_vehicle_scaled_at_random(1004, 0.3), tmp_path / "other")
+    assert "case 2 not strongly detectable at any speed" in summary
     assert data.detectability_floor == NEVER_DETECTABLE and not data.uh_detectable.any()
     ev = evaluate_ride(simulate("dlc_50", vehicle=cfg), cfg, out)
     assert np.all(ev.estimates[:, L.E_ROLL_UIHOSMO] == 0.0)

@@ -22,7 +22,6 @@ otherwise reported 'not available') and the time `mu_drop`'s estimates take to f
 from __future__ import annotations
 
 import math
-import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table
+from ptw_rt.output import emit
 from ptw_rt.parallel import worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress  # noqa: F401 - moved to the plumbing layer; used below
@@ -568,7 +568,6 @@ def matrix_text(result: dict) -> str:
 
 
 def run_matrix_command(args) -> int:
-    import json
 
     extra = ROBUSTNESS_EXTRA if getattr(args, "markdown", False) else ()
     result = run_matrix(
@@ -580,11 +579,8 @@ def run_matrix_command(args) -> int:
     )
     if getattr(args, "markdown", False):
         print(matrix_markdown(result))
-    elif args.json:
-        json.dump(result, sys.stdout)
-        sys.stdout.write("\n")
     else:
-        print(matrix_text(result))
+        emit(result, args.json, "" if args.json else matrix_text(result))
     return 0
 
 

@@ -15,9 +15,7 @@ steer check is meant to flag, but may be).
 
 from __future__ import annotations
 
-import json
 import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -31,6 +29,7 @@ from ptw_rt.eval.matrix import (
     _map,
     run_cell,
 )
+from ptw_rt.output import emit
 from ptw_rt.parallel import worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
@@ -248,9 +247,5 @@ def run_random_command(args) -> int:
         design_file=args.design_file,
         workers=getattr(args, "jobs", None),
     )
-    if args.json:
-        json.dump(result, sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print(summary_text(result))
+    emit(result, args.json, summary_text(result) if not args.json else "")
     return 0
