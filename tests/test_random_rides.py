@@ -83,10 +83,24 @@ def test_the_command_runs_rides_and_prints_json():
         assert ride["roll_rmse_deg"] is not None and ride["roll_tolerance_deg"] == 3.0
 
 
-@pytest.mark.parametrize("count", ["0", "-3", str(rr.MAX_RIDES + 1)])
-def test_a_count_out_of_range_is_one_line_and_exit_2(count):
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--random", "0"],
+        ["--random", "-3"],
+        ["--random", str(rr.MAX_RIDES + 1)],
+        ["--random", "2", "--random-seed", "-5"],
+        ["--random", "2", "--random-seed", str(10**30)],
+        ["--random", "2", "--scenario", "dlc_50"],
+        ["--random", "2", "--matrix"],
+        ["--random", "2", "--perturb", "stiffness=0.7"],
+        ["--random", "2", "--seed", "3"],
+    ],
+)
+def test_a_bad_request_is_one_line_and_exit_2(args):
+    """Out of range, or options --random would silently ignore (it draws its own)."""
     proc = subprocess.run(
-        [sys.executable, "-m", "ptw_rt", "evaluate", "--random", count],
+        [sys.executable, "-m", "ptw_rt", "evaluate", *args],
         capture_output=True,
         text=True,
         timeout=120,

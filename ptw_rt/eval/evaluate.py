@@ -451,7 +451,7 @@ def _run_all(jobs: list[tuple]) -> list[dict]:
 
 
 def run_evaluate(args) -> int:
-    if getattr(args, "matrix", False):
+    if getattr(args, "matrix", False) and getattr(args, "random", None) is None:
         from ptw_rt.eval.matrix import run_matrix_command
 
         return run_matrix_command(args)

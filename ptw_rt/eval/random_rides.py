@@ -59,6 +59,7 @@ DRAWS = (
 WHOLE_COUNTS = ("steer_offset",)
 NOISE_SEEDS = (20, 10000)  # the rides' noise seeds are drawn from [20, 10000): not the scenarios' own
 MAX_RIDES = 100_000
+MAX_GENERATOR_SEED = 10**9  # sets: ride i of set G draws from a generator seeded 1000 + i + 1000 G
 WORST_SHOWN = 5
 
 
@@ -240,6 +241,25 @@ def run_random_command(args) -> int:
     count = args.random
     if not 1 <= count <= MAX_RIDES:
         raise UserFacingError(f"--random takes a number of rides, 1 to {MAX_RIDES}, not {count}")
+    if not 0 <= args.random_seed <= MAX_GENERATOR_SEED:
+        raise UserFacingError(f"--random-seed takes a set number, 0 to {MAX_GENERATOR_SEED}, not {args.random_seed}")
+    given = [
+        flag
+        for flag, value in (
+            ("--scenario", getattr(args, "scenario", None)),
+            ("--all", getattr(args, "all", False)),
+            ("--matrix", getattr(args, "matrix", False)),
+            ("--seed", getattr(args, "seed", None)),
+            ("--perturb", getattr(args, "perturb", None)),
+            ("--markdown", getattr(args, "markdown", False)),
+        )
+        if value
+    ]
+    if given:
+        raise UserFacingError(
+            f"--random draws its own scenarios, noise seeds and perturbations: drop {', '.join(given)} "
+            "(replay one ride with the command its line prints)"
+        )
     result = run_random(
         count,
         args.random_seed,
