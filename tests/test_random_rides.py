@@ -56,6 +56,9 @@ def test_the_summary_names_a_broken_promise_and_the_command_that_replays_it():
     assert all(s["promises_kept"].values())
     assert s["roll"]["le_peer"] == 2 and s["alarms"]["alarmed_with_zero_a_count_off"] == 1
     assert s["alarms"]["alarmed_with_zero_right"] == 0
+    never_valid = _ride(seed=45, stiffness_valid_max_err_pct=None, stiffness_valid_mean_err_pct=None)
+    s2 = rr.summarise([*good, _ride(seed=46, stiffness_valid_mean_err_pct=12.0), never_valid])
+    assert s2["stiffness"]["rides_valid"] == 3 and s2["stiffness"]["mean_le_10pct"] == 2
     bad = good + [_ride(seed=44, roll_rmse_deg=0.9, roll_valid_max_err_deg=3.4, stiffness_valid_max_err_pct=22.0)]
     s = rr.summarise(bad)
     assert s["promises_kept"] == {"roll_valid_within_tolerance": False, "stiffness_valid_max_le_20pct": False}
