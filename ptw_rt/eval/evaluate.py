@@ -119,6 +119,7 @@ class Evaluation:
     baselines: dict[str, np.ndarray]
     result: dict
     samples: np.ndarray | None = None  # (N, SAMPLE_SIZE): the Sample each cycle's step received
+    roll_tolerance_deg: float | None = None  # what EST_Roll_Valid promises (the config's, as the step ran on it)
 
 
 def _rms(e: np.ndarray) -> float | None:
@@ -261,7 +262,7 @@ def evaluate_ride(
     }
     if initial_stiffness_scale is not None:
         result["initial_stiffness_scale"] = {"front_rear": list(initial_stiffness_scale), "applied": applied}
-    return Evaluation(ride, t, E, truth, mask, baselines, result, S)
+    return Evaluation(ride, t, E, truth, mask, baselines, result, S, settings.estimator.roll_tolerance_deg)
 
 
 def _ahrs_peer(samples: np.ndarray, dt: float, sensors: dict) -> np.ndarray | None:

@@ -23,14 +23,14 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table
 from ptw_rt.output import emit
-from ptw_rt.parallel import worker_count
+from ptw_rt.parallel import map_in_processes, worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress  # noqa: F401 - moved to the plumbing layer; used below
 
@@ -162,7 +162,7 @@ def roll_valid_stats(evaluation, tolerance_deg: float | None) -> dict:
     }
 
 
-def cell_metrics(evaluation, roll_tolerance_deg: float | None = None) -> dict:
+def cell_metrics(evaluation) -> dict:
     """Everything the matrix prints for one ride (see the module docstring)."""
     t, E, tr, m, b = evaluation.t, evaluation.estimates, evaluation.truth, evaluation.mask, evaluation.baselines
     roll = tr["roll"][m]
@@ -195,7 +195,7 @@ def cell_metrics(evaluation, roll_tolerance_deg: float | None = None) -> dict:
             "complementary": roll_rmse(b.get("complementary_roll")),
         },
         "roll_ratio_to_peer": _r(ours / peer) if ours is not None and peer else None,
-        "roll_valid": roll_valid_stats(evaluation, roll_tolerance_deg),
+        "roll_valid": roll_valid_stats(evaluation, evaluation.roll_tolerance_deg),
         "torque": {
             "rmse_nm": _r(t_rmse),
             "peak_nm": _r(t_peak),
@@ -331,19 +331,17 @@ def check_targets(cells: Sequence[dict], wrong_start: dict | None = None) -> dic
 def run_cell(job: tuple) -> dict:
     """One matrix cell: (scenario, variant label, perturbations, seed, config, design file) -> cell dict."""
     from ptw_rt.eval.evaluate import evaluate_ride
-    from ptw_rt.settings import load_settings
     from ptw_rt.sim.ride import parse_perturbations, simulate
 
     scenario, variant, perturb, seed, config, design_file = job
     t0 = time.perf_counter()
     ride = simulate(scenario, seed=seed, vehicle=config, perturbation=parse_perturbations(list(perturb)))
     evaluation = evaluate_ride(ride, config, design_file)
-    tolerance = load_settings(config).estimator.roll_tolerance_deg
     cell = {
         "scenario": scenario,
         "variant": variant,
         "perturb": list(perturb),
-        "metrics": cell_metrics(evaluation, tolerance),
+        "metrics": cell_metrics(evaluation),
         "result": evaluation.result,
     }
     if scenario == "mu_drop":
@@ -365,28 +363,6 @@ def run_wrong_start(job: tuple) -> dict:
     if applied:
         out["convergence"] = learning_times(evaluation, 0.0)
     return out
-
-
-def _map(fn: Callable, jobs: list, workers: int | None, progress: Progress | None, name: Callable) -> list:
-    """fn over jobs on `workers` processes (1: in this process), results in job order."""
-    workers = worker_count(workers, len(jobs))
-    results: list = [None] * len(jobs)
-    if workers == 1:
-        for i, job in enumerate(jobs):
-            results[i] = fn(job)
-            if progress:
-                progress.step(name(job))
-        return results
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(fn, job): i for i, job in enumerate(jobs)}
-        for fut in as_completed(futures):
-            i = futures[fut]
-            results[i] = fut.result()
-            if progress:
-                progress.step(name(jobs[i]))
-    return results
 
 
 def run_matrix(
@@ -416,7 +392,7 @@ def run_matrix(
     bar = Progress(len(jobs) + len(ws_jobs)) if progress else None
     t0 = time.perf_counter()
     all_jobs = [("cell", jobs[i]) for i in order] + [("ws", j) for j in ws_jobs]
-    out = _map(_dispatch, all_jobs, workers, bar, lambda j: f"{j[1][0]} {j[1][1]}")
+    out = map_in_processes(_dispatch, all_jobs, workers, bar, lambda j: f"{j[1][0]} {j[1][1]}")
     wall = time.perf_counter() - t0
     cells_by_index = dict(zip(order, out[: len(order)], strict=True))
     cells = [cells_by_index[i] for i in range(len(jobs))]
@@ -568,7 +544,6 @@ def matrix_text(result: dict) -> str:
 
 
 def run_matrix_command(args) -> int:
-
     extra = ROBUSTNESS_EXTRA if getattr(args, "markdown", False) else ()
     result = run_matrix(
         seed=args.seed,

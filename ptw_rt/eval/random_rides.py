@@ -26,11 +26,10 @@ from ptw_rt.eval.matrix import (
     STIFFNESS_VALID_MAX_PCT,
     STIFFNESS_VALID_MEAN_PCT,
     TORQUE_MAX_PCT_OF_PEAK,
-    _map,
     run_cell,
 )
 from ptw_rt.output import emit
-from ptw_rt.parallel import worker_count
+from ptw_rt.parallel import map_in_processes, worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
 
@@ -192,7 +191,7 @@ def run_random(
         jobs.append((scenario, perturb, seed, config, design_file))
     bar = Progress(len(jobs), label="random rides") if progress else None
     t0 = time.perf_counter()
-    rides = _map(_ride_job, jobs, workers, bar, lambda j: f"{j[0]} {j[2]}")
+    rides = map_in_processes(_ride_job, jobs, workers, bar, lambda j: f"{j[0]} {j[2]}")
     if bar is not None:
         bar.finish()
     return {
