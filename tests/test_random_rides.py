@@ -66,6 +66,8 @@ def test_the_summary_names_a_broken_promise_and_the_command_that_replays_it():
         "ptw-rt evaluate --scenario urban --seed 44 --perturb stiffness=0.800 --perturb steer_offset=0.000"
     )
     assert s["roll"]["worse_than_peer"][0]["roll"] == 0.9
+    other = _ride(config="/v/other.yaml", design_file="/v/other.npz")
+    assert rr.reproduce_command(other).endswith("--config /v/other.yaml --design-file /v/other.npz")
     text = rr.summary_text({"generator_seed": 0, "workers": 1, "wall_s": 1.0, "summary": s})
     assert text.count("BROKEN") == 2 and "--seed 44" in text
 

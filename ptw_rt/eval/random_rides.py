@@ -33,7 +33,8 @@ from ptw_rt.parallel import map_in_processes, worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
 
-# the scenarios in turn (ride i is SCENARIOS[i % 8])
+# the scenarios in turn (ride i is SCENARIOS[i % 8]); fixed here rather than taken from the simulator's registry:
+# a scenario added there must not change which ride is ride i of set G
 SCENARIOS = (
     "handling_40_120",
     "urban",
@@ -77,6 +78,9 @@ def reproduce_command(ride: dict) -> str:
     args = ["ptw-rt", "evaluate", "--scenario", ride["scenario"], "--seed", str(ride["seed"])]
     for p in ride["perturb"]:
         args += ["--perturb", p]
+    for flag in ("config", "design_file"):  # a ride on another file replays only on it
+        if ride.get(flag) is not None:
+            args += ["--" + flag.replace("_", "-"), str(ride[flag])]
     return shlex.join(args)
 
 
@@ -103,7 +107,12 @@ def _summary_of_cell(cell: dict, seed: int) -> dict:
 def _ride_job(job: tuple) -> dict:
     scenario, perturb, seed, config, design_file = job
     cell = run_cell((scenario, "random", perturb, seed, config, design_file))
-    return _summary_of_cell(cell, seed)
+    ride = _summary_of_cell(cell, seed)
+    if Path(config) != DEFAULT_CONFIG:
+        ride["config"] = str(config)
+    if design_file is not None:
+        ride["design_file"] = str(design_file)
+    return ride
 
 
 def _gt(value, limit) -> bool:
