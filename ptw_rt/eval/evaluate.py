@@ -452,14 +452,14 @@ def _run_all(jobs: list[tuple]) -> list[dict]:
 
 
 def run_evaluate(args) -> int:
-    if getattr(args, "matrix", False) and getattr(args, "random", None) is None:
-        from ptw_rt.eval.matrix import run_matrix_command
-
-        return run_matrix_command(args)
-    if getattr(args, "random", None) is not None:
+    if getattr(args, "random", None) is not None:  # first: it refuses the options it would ignore, --matrix too
         from ptw_rt.eval.random_rides import run_random_command
 
         return run_random_command(args)
+    if getattr(args, "matrix", False):
+        from ptw_rt.eval.matrix import run_matrix_command
+
+        return run_matrix_command(args)
     if not args.all and not args.scenario:
         raise UserFacingError("give --scenario NAME, --all or --matrix")
     if args.scenario and args.scenario not in SCENARIOS:
