@@ -307,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="S",
         help="a gap in a log's time stamps longer than this ends a segment; the next starts from reset inputs "
-        "(default: 5 s)",
+        "(0.1-60 s, default: 5 s)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines on stderr")
     p.set_defaults(handler=_replay)

@@ -532,12 +532,19 @@ def replay_job(
         return _failure(in_path, exc)
 
 
+# --max-gap's range. A gap within it is driven cycle by cycle (100 per second), so it bounds what one line of a log
+# can cost: 10^8 s took 700 MB of output in 20 s and would have run for years. Below the minimum every frame of a
+# 100 Hz log would start a segment (one stderr line each).
+MAX_GAP_RANGE_S = (0.1, 60.0)
+
+
 def _max_gap(args) -> float:
     value = getattr(args, "max_gap", None)
     if value is None:
         return DEFAULT_MAX_GAP_S
-    if not (math.isfinite(value) and value > 0.0):
-        raise UserFacingError(f"--max-gap must be a positive number of seconds, got {value}")
+    low, high = MAX_GAP_RANGE_S
+    if not (math.isfinite(value) and low <= value <= high):
+        raise UserFacingError(f"--max-gap must be {low:g}-{high:g} s, got {value}")
     return float(value)
 
 

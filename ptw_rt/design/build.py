@@ -11,7 +11,7 @@ import numpy as np
 
 from ptw_rt.design import kalman, tyre_bank, uio_sensors
 from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
-from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design
+from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design_for
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
 from ptw_rt.design.uihosmo import NEVER_DETECTABLE, design_grid
 from ptw_rt.errors import UserFacingError
@@ -270,7 +270,7 @@ def run_design(args) -> int:
         path = args.design_file or (DEFAULT_DESIGN if args.out is None else args.out)
         if Path(path).exists():
             try:
-                data = load_design(path, settings.config_hash, args.config)
+                data = load_design_for(settings, path, args.config)
             except DesignFileError as exc:
                 print(f"ptw-rt design --check: {exc}", file=sys.stderr)
                 return 1

@@ -124,39 +124,130 @@ MAX_NDIM = 4
 _MEMBER_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}\.npy")
 # dtype kinds allowed per field annotation: no object (pickle), structured, bytes or complex arrays
 _KINDS = {"int": "iu", "float": "iuf", "str": "U", "np.ndarray": "biuf"}
-# tables indexed by the speed grid along their first axis: that axis must have len(grid) entries, or the jitted
-# step (no bounds checks) would read past the end of a table. Names not (or no longer) in DesignData are ignored.
-_GRID_INDEXED = frozenset(
-    {
-        "uh_detectable",
-        "uh_Phi",
-        "uh_Gamma",
-        "uh_T",
-        "uh_T_inv",
-        "uh_Abar",
-        "uh_Dbar_inv",
-        "uh_Phi22",
-        "uh_Gamma21",
-        "uh_Ramp_y",
-        "uh_Ramp21",
-        "ad_Phi",
-        "ad_B_tau",
-        "ad_B_theta",
-        "ad_B_y",
-        "kf_Phi",
-        "kf_K",
-        "kf_Gd",
-        "us_Phi",
-        "us_Gamma",
-        "us_Ramp",
-        "us_T_inv",
-        "us_Abar",
-        "us_Dbar_inv",
-        "us_Phi22",
-        "us_Gamma21",
-        "us_Ramp21",
-    }
-)
+
+# Every table's full shape, in the sizes the file declares: G grid speeds, H tyre hypotheses (HG = H x G rows), m
+# reconstruction outputs and p observed outputs of the UIHOSMO on the sensors, n1 + n2 = 7 its reduced split (P5 = p + 5
+# inputs). The jitted step has no bounds checks: a table one row short is read past its end, silently.
+_SHAPES: dict[str, tuple] = {
+    "grid": ("G",),
+    "uh_detectable": ("G",),
+    "uh_Phi": ("G", 7, 7),
+    "uh_Gamma": ("G", 7, 2),
+    "uh_T": ("G", 7, 7),
+    "uh_T_inv": ("G", 7, 7),
+    "uh_Abar": ("G", 2, 7),
+    "uh_Dbar_inv": ("G", 2, 2),
+    "uh_Phi22": ("G", 4, 4),
+    "uh_Gamma21": ("G", 4, 3),
+    "uh_Ramp_y": ("G", 7, 2),
+    "uh_Ramp21": ("G", 4, 3),
+    "uh_complement_rows": (4,),
+    "ad_Phi": ("G", 8, 8),
+    "ad_B_tau": ("G", 8),
+    "ad_B_theta": ("G", 8, 2),
+    "ad_B_y": ("G", 8, 6),
+    "ad_C": (6, 8),
+    "ad_T": (2, 6),
+    "ad_gamma": (4,),
+    "ad_theta_nominal": (4,),
+    "ad_theta_bound": (4,),
+    "ad_pe_threshold": (4,),
+    "ad_L_vertices": (2, 8, 6),
+    "ad_speed_vertices": (2,),
+    "regressor_constants": (6,),
+    "kf_Phi": ("G", 9, 9),
+    "kf_K": ("G", 9, 5),
+    "kf_C": (5, 9),
+    "kf_Gd": ("G", 9, 4),
+    "kf_nonlinear": (7,),
+    "tb_scale": ("H",),
+    "tb_Phi": ("HG", 9, 9),
+    "tb_K": ("HG", 9, 5),
+    "tb_Gd": ("HG", 9, 4),
+    "tb_Sinv": ("HG", 5, 5),
+    "tb_logdet": ("HG", 1, 1),
+    "tb_Phi_pub": ("HG", 9, 9),
+    "tb_K_pub": ("HG", 9, 5),
+    "tb_Gd_pub": ("HG", 9, 4),
+    "us_outputs": ("m",),
+    "us_observed": ("p",),
+    "us_degrees": ("m",),
+    "us_lipschitz": ("m",),
+    "us_C": ("p", 7),
+    "us_Phi": ("G", 7, 7),
+    "us_Gamma": ("G", 7, "P5"),
+    "us_Ramp": ("G", 7, "P5"),
+    "us_T_inv": ("G", 7, 7),
+    "us_Abar": ("G", "m", 7),
+    "us_Dbar_inv": ("G", "m", "m"),
+    "us_Phi22": ("G", "n2", "n2"),
+    "us_Gamma21": ("G", "n2", "n1"),
+    "us_Ramp21": ("G", "n2", "n1"),
+}
+# what the runtime lays out (ptw_rt.core: tyre_bank.MAX_COUNT; uio_sensors MAX_OUT, MAX_OBS, MAX_DIFF - 2 and the
+# four measurement codes; tests/test_design_file.py checks they agree): a design beyond them cannot run
+MAX_HYPOTHESES = 32
+MAX_RECONSTRUCTED = 2
+MAX_OBSERVED = 4
+MAX_DEGREE = 2
+MEASUREMENT_CODES = 4
+MAX_GRID_SPEED = 100.0  # m/s
+
+
+def _check_contents(raw: dict[str, np.ndarray], expected_sample_time: float | None, expected_grid) -> str | None:
+    """What the arrays must hold for the step to run on them (any problem: its description): every shape, the grid
+    (increasing, positive, the config's), the sample time (the config's), index and count fields within what the
+    runtime lays out, and the signs the observers assume. The hash alone proves nothing: a file can keep it."""
+    dt = float(raw["sample_time"].item())
+    if not 0.001 <= dt <= 0.1:
+        return f"sample_time {dt:g} s outside 0.001-0.1 s"
+    if expected_sample_time is not None and dt != expected_sample_time:
+        return f"sample_time {dt:g} s, the config's estimator.sample_time is {expected_sample_time:g} s"
+    grid = raw["grid"].astype(np.float64)
+    if grid.ndim != 1 or grid.shape[0] < 2 or grid[0] < 0.0 or grid[-1] > MAX_GRID_SPEED or np.any(np.diff(grid) <= 0):
+        return f"grid is not 2 or more increasing speeds within 0-{MAX_GRID_SPEED:g} m/s"
+    if expected_grid is not None and (grid.shape != expected_grid.shape or not np.allclose(grid, expected_grid)):
+        return "grid is not the config's estimator.speed_grid"
+    scale = raw["tb_scale"].astype(np.float64)
+    if scale.ndim != 1 or not 2 <= scale.shape[0] <= MAX_HYPOTHESES or scale[0] <= 0 or np.any(np.diff(scale) <= 0):
+        return f"tb_scale is not 2 to {MAX_HYPOTHESES} increasing positive tyre scales"
+    outputs, observed, degrees = (raw[k].astype(np.int64) for k in ("us_outputs", "us_observed", "us_degrees"))
+    m, p = outputs.size, observed.size
+    if not (1 <= m <= MAX_RECONSTRUCTED and m <= p <= MAX_OBSERVED):
+        return f"us_outputs / us_observed: {m} / {p} outputs (1-{MAX_RECONSTRUCTED} / up to {MAX_OBSERVED})"
+    if np.any(observed < 0) or np.any(observed >= MEASUREMENT_CODES) or not np.array_equal(observed[:m], outputs):
+        return "us_observed holds unknown measurement codes or does not start with us_outputs"
+    if degrees.shape != outputs.shape or np.any(degrees < 1) or np.any(degrees > MAX_DEGREE):
+        return f"us_degrees outside 1-{MAX_DEGREE}"
+    n2 = raw["us_Phi22"].shape[1] if raw["us_Phi22"].ndim == 3 else 0
+    sizes = {"G": grid.shape[0], "H": scale.shape[0], "HG": scale.shape[0] * grid.shape[0], "m": m, "p": p}
+    sizes.update(P5=p + 5, n2=n2, n1=7 - n2)
+    if not 1 <= n2 <= 6:
+        return f"us_Phi22 splits the reduced state {7 - n2} + {n2}"
+    for name, spec in _SHAPES.items():
+        want = tuple(sizes[d] if isinstance(d, str) else d for d in spec)
+        if raw[name].shape != want:
+            return f"{name} has shape {excerpt(raw[name].shape, 40)}, expected {want}"
+    rows = raw["uh_complement_rows"].astype(np.int64)
+    if np.any(rows < 0) or np.any(rows > 6) or np.unique(rows).size != rows.size:
+        return "uh_complement_rows are not distinct rows 0-6"
+    if int(raw["us_roll_input"].item()) not in (0, 1):
+        return "us_roll_input is not 0 or 1"
+    positive = ("uh_differentiator_lambda", "us_mass", "ad_theta_nominal", "ad_theta_bound", "us_lipschitz")
+    for name in positive:
+        if np.any(raw[name] <= 0):
+            return f"{name} must be positive"
+    for name in ("min_valid_speed", "detectability_floor", "us_min_valid_speed", "us_detectability_floor"):
+        if raw[name].item() < 0:
+            return f"{name} must not be negative"
+    for name in ("ad_gamma", "ad_pe_threshold"):
+        if np.any(raw[name] < 0):
+            return f"{name} must not be negative"
+    if not 0.0 < raw["ad_pe_forgetting"].item() <= 1.0:
+        return "ad_pe_forgetting outside (0, 1]"
+    if np.any(raw["regressor_constants"][2:4] <= 0):
+        return "regressor_constants: the axle distances must be positive"
+    return None
 
 
 def _field_kinds() -> dict[str, str]:
@@ -236,10 +327,17 @@ def _printable(text: str) -> str:
     return "".join(c if c.isascii() and c.isalnum() else "?" for c in text)
 
 
-def load_design(path: str | Path, expected_hash: str | None = None, config_path: str | Path = "CONFIG") -> DesignData:
+def load_design(
+    path: str | Path,
+    expected_hash: str | None = None,
+    config_path: str | Path = "CONFIG",
+    expected_sample_time: float | None = None,
+    expected_grid: np.ndarray | None = None,
+) -> DesignData:
     """Read and check a design file (any problem: one-line ``DesignFileError``). The file is untrusted: a
     regular file of at most ``MAX_DESIGN_BYTES``; members, dtypes, shapes and sizes checked before decompressing;
-    no pickles; the speed-grid tables must match the grid."""
+    no pickles; every table's full shape, the grid, the sample time (the config's, when given) and the index
+    fields checked (`_check_contents`)."""
     path = Path(path)
     hint = REGENERATE_HINT.format(config=config_path, path=path)
     try:
@@ -255,16 +353,13 @@ def load_design(path: str | Path, expected_hash: str | None = None, config_path:
     if missing:
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
         raise DesignFileError(f"{path}: design file lacks {shown}; {hint}")
-    n_grid = raw["grid"].shape[0]
-    for name in sorted(_GRID_INDEXED & set(raw)):
-        if raw[name].shape[0] != n_grid:
-            raise DesignFileError(
-                f"{path}: {name} has {raw[name].shape[0]} speed grid points, grid has {n_grid}; {hint}"
-            )
     for name in sorted(raw):
         # a table with a NaN loads and runs, every cycle DEGRADED with nothing said (a tampered or damaged file)
         if raw[name].dtype.kind in "fc" and not np.all(np.isfinite(raw[name])):
             raise DesignFileError(f"{path}: {name} holds values that are not finite (NaN or infinity); {hint}")
+    problem = _check_contents(raw, expected_sample_time, expected_grid)
+    if problem is not None:
+        raise DesignFileError(f"{path}: {problem}; {hint}")
     values = {}
     for f in fields(DesignData):
         v = raw[f.name]
@@ -278,3 +373,9 @@ def load_design(path: str | Path, expected_hash: str | None = None, config_path:
             f"config hash {expected_hash[:12]}): the vehicle or tuning changed since; {hint}"
         )
     return data
+
+
+def load_design_for(settings, path: str | Path, config_path: str | Path = "CONFIG") -> DesignData:
+    """`load_design` checked against the running configuration: its hash, sample time and speed grid."""
+    est = settings.estimator
+    return load_design(path, settings.config_hash, config_path, est.sample_time, est.speed_grid_ms())

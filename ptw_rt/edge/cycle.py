@@ -28,7 +28,7 @@ import numpy as np
 
 from ptw_rt.core.estimator import Estimator
 from ptw_rt.core.layout import E_MODE, MODE_CONVERGING, MODE_DEGRADED, MODE_VALID, new_estimates, new_sample
-from ptw_rt.design.file import load_design
+from ptw_rt.design.file import load_design_for
 from ptw_rt.edge import drive as dr
 from ptw_rt.edge import tracking as tr
 from ptw_rt.edge.inputs import InputTracker
@@ -146,7 +146,7 @@ def build_runner(
 ) -> CycleRunner:
     """Load and check config, design file and DBC (clear errors), return a ready runner."""
     settings = settings or load_settings(config)
-    design = load_design(design_file or DEFAULT_DESIGN, settings.config_hash, config)
+    design = load_design_for(settings, design_file or DEFAULT_DESIGN, config)
     return CycleRunner(settings, Estimator(settings, design), FrameCodec(dbc))
 
 

@@ -72,13 +72,13 @@ def score(ev: Evaluation, R: np.ndarray, min_speed: float) -> dict[str, float]:
 
 
 def evaluate_scenario(name: str) -> dict[str, float]:
-    from ptw_rt.design.file import load_design
+    from ptw_rt.design.file import load_design_for
     from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
     from ptw_rt.settings import load_settings
     from ptw_rt.sim.ride import simulate
 
     settings = load_settings(DEFAULT_CONFIG)
-    design = load_design(DEFAULT_DESIGN, settings.config_hash, DEFAULT_CONFIG)
+    design = load_design_for(settings, DEFAULT_DESIGN, DEFAULT_CONFIG)
     ev = evaluate_ride(simulate(name))
     R = drive_stage(ev, design, settings)
     return score(ev, R, settings.estimator.min_valid_speed_kmh / 3.6)

@@ -9,12 +9,14 @@ import time
 import tracemalloc
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ptw_rt.design.file import DesignFileError, load_design
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.candump import MAX_LINE_CHARS, read_log
 from ptw_rt.io.state_file import load_state, restore_state, save_state, stiffness_bounds
+from ptw_rt.paths import DEFAULT_DESIGN
 from ptw_rt.schema import ConfigError
 from ptw_rt.settings import load_settings
 from ptw_rt.untrusted import check_nesting, excerpt
@@ -180,13 +182,55 @@ def test_design_messages_say_why(hostile_designs):
     assert "CRC" in why("size_lie")
     assert "dtype" in why("pickle") and "object" in why("pickle")
     assert "members" in why("many_members")
-    assert "speed grid points" in why("short_grid_table")
+    assert "expected (" in why("short_grid_table")
     assert "unexpected member" in why("odd_member_name")
+
+
+# a design file tampered with, its config hash kept (so the hash check passes): each ran before, some without end
+# (a negative sample time: replay wrote 120 MB/s of cycles running backwards), some read past a table's end
+TAMPERED = {
+    "sample_time_negative": ("sample_time", lambda v: np.array(-0.01), "sample_time"),
+    "sample_time_zero": ("sample_time", lambda v: np.array(0.0), "sample_time"),
+    "sample_time_tiny": ("sample_time", lambda v: np.array(1e-7), "sample_time"),
+    "sample_time_not_the_configs": ("sample_time", lambda v: np.array(0.02), "config's estimator.sample_time"),
+    "grid_descending": ("grid", lambda v: v[::-1].copy(), "increasing"),
+    "grid_not_the_configs": ("grid", lambda v: v * 1.01, "config's estimator.speed_grid"),
+    "table_cut": ("uh_Phi", lambda v: v[:, :2, :2].copy(), "uh_Phi has shape"),
+    "one_tyre": ("tb_scale", lambda v: v[:1].copy(), "tb_scale"),
+    "observed_code": ("us_observed", lambda v: np.full_like(v, 10**9), "measurement codes"),
+    "degree": ("us_degrees", lambda v: np.full_like(v, 9), "us_degrees"),
+    "rows": ("uh_complement_rows", lambda v: np.full_like(v, -1), "uh_complement_rows"),
+    "mass": ("us_mass", lambda v: np.array(0.0), "us_mass"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(TAMPERED))
+def test_a_design_file_tampered_with_its_hash_kept_is_refused(name, tmp_path, settings):
+    from ptw_rt.design.file import load_design_for
+
+    field, change, why = TAMPERED[name]
+    with np.load(DEFAULT_DESIGN) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays[field] = change(arrays[field])
+    path = tmp_path / f"{name}.npz"
+    np.savez(path, **arrays)
+    with pytest.raises(DesignFileError, match=why) as info:
+        load_design_for(settings, path)
+    assert "\n" not in str(info.value)
+
+
+def test_the_design_files_limits_are_the_runtimes():
+    from ptw_rt.core import tyre_bank, uio_sensors
+    from ptw_rt.design import file
+
+    assert file.MAX_HYPOTHESES == tyre_bank.MAX_COUNT
+    assert (file.MAX_RECONSTRUCTED, file.MAX_OBSERVED) == (uio_sensors.MAX_OUT, uio_sensors.MAX_OBS)
+    assert file.MAX_DEGREE == uio_sensors.MAX_DIFF - 2
+    assert file.MEASUREMENT_CODES == uio_sensors.M_LAT_ACCEL + 1  # M_STEER .. M_LAT_ACCEL = range(4)
 
 
 def test_committed_design_loads_identically_to_numpy(committed_design):
     np = pytest.importorskip("numpy")
-    from ptw_rt.paths import DEFAULT_DESIGN
 
     with np.load(DEFAULT_DESIGN, allow_pickle=False) as npz:
         for name in npz.files:

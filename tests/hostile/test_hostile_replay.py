@@ -241,6 +241,7 @@ def test_worker_exception_becomes_the_logs_error(monkeypatch, tmp_path):
 
 
 def test_max_gap_option_checked(hostile_logs, tmp_path):
-    for bad in (0.0, -1.0, math.nan, math.inf):
+    # beyond 60 s a gap is driven cycle by cycle without bound (1e9: 700 MB in 20 s); below 0.1 s a segment per frame
+    for bad in (0.0, -1.0, math.nan, math.inf, 1e9, 61.0, 1e-300, 0.05):
         with pytest.raises(UserFacingError, match="--max-gap"):
             run_replay(_args([hostile_logs["gap_3s"]], tmp_path / "o.log", max_gap=bad))
