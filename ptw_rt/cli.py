@@ -123,8 +123,8 @@ def _speeds(text: str) -> list[float]:
         values = [float(s) for s in text.split(",") if s.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated speeds in km/h, got {text!r}") from None
-    if not values or any(v <= 0 for v in values):
-        raise argparse.ArgumentTypeError("speeds must be positive km/h values")
+    if not values or not all(0.0 < v <= 400.0 for v in values):  # nan and inf included (the analysis needs numbers)
+        raise argparse.ArgumentTypeError("speeds must be km/h values within (0, 400]")
     return values
 
 

@@ -9,8 +9,9 @@ Exit codes of ``ptw-rt`` (README, "Exit codes"):
   argument). ``ptw-rt.service`` does not restart on it (``RestartPreventExitStatus=2``).
 * 69 ``EXIT_UNAVAILABLE`` (sysexits' EX_UNAVAILABLE): ``run`` cannot open the CAN bus at start-up (no such
   interface, link down). systemd restarts the daemon: the interface may come later.
-* 74 ``EXIT_OUTPUT`` (sysexits' EX_IOERR): an output of ``replay`` cannot be written, whatever its format (disk
-  full, permission, a directory).
+* 74 ``EXIT_OUTPUT`` (sysexits' EX_IOERR): an output cannot be written (``replay``'s, whatever its format;
+  ``simulate``'s ride, ``report``'s plots, ``demo``'s logs and report): disk full, permission, a file where a
+  directory is asked for.
 """
 
 EXIT_OK = 0
@@ -25,3 +26,14 @@ class UserFacingError(Exception):
     command line exits with (``EXIT_USER`` unless a subclass says otherwise)."""
 
     exit_code = EXIT_USER
+
+
+class OutputError(UserFacingError):
+    """An output cannot be written (disk full, permission, not a file or not a directory)."""
+
+    exit_code = EXIT_OUTPUT
+
+
+def output_error(path, exc: OSError) -> OutputError:
+    """The one line for an OSError writing ``path``."""
+    return OutputError(f"cannot write {path}: {exc.strerror or exc}")

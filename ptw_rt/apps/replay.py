@@ -58,7 +58,7 @@ from ptw_rt.edge.cycle import (
     drive_blocks,
 )
 from ptw_rt.edge.inputs import InputTracker
-from ptw_rt.errors import EXIT_OK, EXIT_OUTPUT, EXIT_PARTIAL, UserFacingError
+from ptw_rt.errors import EXIT_OK, EXIT_PARTIAL, OutputError, UserFacingError, output_error
 from ptw_rt.io.candump import FrameArrays
 from ptw_rt.io.logformats import (
     EXTENSIONS,
@@ -157,14 +157,12 @@ class _Feed:
         )
 
 
-class ReplayOutputError(UserFacingError):
+class ReplayOutputError(OutputError):
     """An output of the replay cannot be written (disk full, permission, not a file)."""
-
-    exit_code = EXIT_OUTPUT
 
 
 def _output_error(path: Path | str, exc: OSError) -> ReplayOutputError:
-    return ReplayOutputError(f"cannot write {path}: {exc.strerror or exc}")
+    return ReplayOutputError(str(output_error(path, exc)))
 
 
 def _prepare_output(path: Path, what: str) -> None:

@@ -340,8 +340,9 @@ def _targets(result: dict) -> dict:
     """Which of the issue's targets this scenario meets (None: not applicable)."""
     m, b = result["metrics"], result["baselines"]
     out = {}
-    best = min(v for v in (b.get("kinematic_roll_rmse_deg"), b.get("complementary_roll_rmse_deg")) if v is not None)
-    if m["roll_rmse_deg"] is not None:
+    known = [v for v in (b.get("kinematic_roll_rmse_deg"), b.get("complementary_roll_rmse_deg")) if v is not None]
+    if m["roll_rmse_deg"] is not None and known:  # nothing scored (never valid, or ridden below the validity speed)
+        best = min(known)
         factor = 0.5 if result["scenario"] in TRANSIENT_SCENARIOS else 1.0
         out["roll_beats_baselines"] = m["roll_rmse_deg"] <= factor * best
     if result["scenario"] == "dlc_100":

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table
-from ptw_rt.errors import UserFacingError
+from ptw_rt.errors import UserFacingError, output_error
 from ptw_rt.eval.evaluate import SETTLE_S, Evaluation, evaluate_scenario
 
 DPI = 120
@@ -127,7 +127,15 @@ def _limits(*series, margin: float = 0.1) -> tuple[float, float]:
 
 
 def write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
-    """Write the PNGs and summary.md of one evaluation into out_dir; return the written paths."""
+    """Write the PNGs and summary.md of one evaluation into out_dir; return the written paths. One that cannot be
+    written: ``OutputError`` (one line, exit code 74)."""
+    try:
+        return _write_report(evaluation, out_dir)
+    except OSError as exc:
+        raise output_error(out_dir, exc) from None
+
+
+def _write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
     try:
         import matplotlib
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ptw_rt.errors import output_error
 from ptw_rt.io.candump import CandumpWriter
 from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.paths import DEFAULT_DBC
@@ -120,19 +121,23 @@ def write_ride(
     channel: str = DEFAULT_CHANNEL,
     progress=None,
 ) -> dict[str, Path]:
-    """Write NAME.log, NAME.truth.csv and NAME.meta.json into out_dir (created if needed)."""
+    """Write NAME.log, NAME.truth.csv and NAME.meta.json into out_dir (created if needed); one that cannot be
+    written: ``OutputError`` (one line, exit code 74)."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     name = name or ride.scenario
     paths = {
         "log": out / f"{name}.log",
         "truth": out / f"{name}.truth.csv",
         "meta": out / f"{name}.meta.json",
     }
-    write_log(ride, paths["log"], codec=codec, channel=channel, progress=progress)
-    write_truth_csv(ride, paths["truth"])
-    meta = ride_metadata(ride)
-    paths["meta"].write_text(json.dumps(meta, indent=2, default=_json_default) + "\n", encoding="utf-8")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_log(ride, paths["log"], codec=codec, channel=channel, progress=progress)
+        write_truth_csv(ride, paths["truth"])
+        meta = ride_metadata(ride)
+        paths["meta"].write_text(json.dumps(meta, indent=2, default=_json_default) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise output_error(out, exc) from None
     return paths
 
 

@@ -124,6 +124,9 @@ PERTURB_KEYS = {
     "steer_offset_step": "counts added to the steering encoder's reading (a slipped encoder)",
 }
 
+MIN_DURATION = 1.0  # s of a simulated ride
+MAX_SEED = 2**63  # numpy's generators take non-negative seeds
+
 
 @dataclass(frozen=True)
 class Perturbation:
@@ -274,9 +277,11 @@ def simulate(
 ) -> Ride:
     sc = get_scenario(scenario) if isinstance(scenario, str) else scenario
     seed = sc.seed if seed is None else int(seed)
+    if not 0 <= seed < MAX_SEED:
+        raise UserFacingError(f"seed must be within 0-{MAX_SEED - 1}, got {seed}")
     duration = sc.duration if duration is None else float(duration)
-    if not (0.0 < duration <= 3600.0):
-        raise UserFacingError(f"duration must be within (0, 3600] s, got {duration}")
+    if not (MIN_DURATION <= duration <= 3600.0):  # below a second the sensors' first GPS fix is not even due
+        raise UserFacingError(f"duration must be within {MIN_DURATION:g}-3600 s, got {duration}")
     pert = perturbation or Perturbation()
     if vehicle is None or isinstance(vehicle, (str, Path)):
         nominal = load_vehicle(vehicle or DEFAULT_CONFIG)

@@ -115,10 +115,7 @@ def run_simulate(args) -> int:
     from ptw_rt.sim.recording import write_ride
 
     out = Path(args.out)
-    try:
-        paths = write_ride(ride, out, progress=_bar(f"{sc.name}: writing log") if ride.duration >= 20 else None)
-    except OSError as exc:
-        raise UserFacingError(f"cannot write to {out}: {exc}") from None
+    paths = write_ride(ride, out, progress=_bar(f"{sc.name}: writing log") if ride.duration >= 20 else None)
     if args.plot:
         png = out / f"{sc.name}.png"
         plot_ride(ride, png)

@@ -65,6 +65,13 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
         (["design", "--config", c["duplicate_key"], "--out", out / "d.npz"], 2),
         (["replay", log, "--out", out / "n.log", "--design-file", d["nan_table"]], 2),
         (["replay", log, "--out", out / "j.log", "--jobs", "0"], 2),
+        # arguments that reached numpy or the simulator's first sample as a traceback
+        (["simulate", "--scenario", "dlc_50", "--duration", "0.001", "--out", out / "s"], 2),
+        (["evaluate", "--scenario", "dlc_50", "--seed", "-1"], 2),
+        (["analyze", "--speeds", "nan,inf"], 2),
+        # outputs that cannot be written: one line, exit 74 like replay's (a file where a directory is asked for)
+        (["simulate", "--scenario", "dlc_50", "--duration", "2", "--out", log], 74),
+        (["report", "--scenario", "dlc_50", "--out", log], 74),
     ]
     results = run_many([args for args, _ in commands], cwd=tmp_path, timeout=TIMEOUT)
     expected = {tuple(map(str, args)): rc for args, rc in commands}
