@@ -624,6 +624,31 @@ def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
     assert (x[att.X_BP], x[att.X_BQ], x[att.X_BR], x[att.X_BAY]) == pytest.approx(biases)
 
 
+def test_a_save_while_the_biases_are_doubted_keeps_the_last_good_ones(tmp_path):
+    """A save (periodic, or at SIGTERM) while the attitude monitor doubts its biases, or before the steer zero is
+    re-learned, wrote the file without them: the restored ones were lost. It keeps the last known good ones."""
+    state = tmp_path / "state.json"
+    first = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    learned = first.runner.estimator.design.ad_theta_nominal * 0.9
+    biases, zero = (0.004, -0.002, 0.003, -0.05), (512.0, 0.006)
+    first.runner.estimator.learned_sensor_biases = lambda: biases
+    first.runner.estimator.learned_steer_zero = lambda: zero
+    first.on_cycle = _learns(first, learned)
+    _run(first, 0.5)
+
+    second = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    assert "sensor biases and steer zero" in second.state_note
+    second.runner.estimator.learned_sensor_biases = lambda: None  # the monitor's alarm: not sound now
+    second.runner.estimator.learned_steer_zero = lambda: None
+    second.on_cycle = _learns(second, learned * 1.1)
+    _run(second, 0.5)
+    saved, reason = load_state(state, second.settings.config_hash)
+    assert saved is not None, reason
+    np.testing.assert_allclose(saved.stiffness, learned * 1.1, rtol=1e-9)  # the save did happen
+    assert saved.sensor_biases == pytest.approx(biases)
+    assert saved.steer_zero == pytest.approx(zero)
+
+
 def test_restart_keeps_the_learned_steer_zero_unless_the_encoder_was_re_zeroed(tmp_path):
     """The steer zero learned riding straight is saved with the tyres and the next boot starts from it; a file
     learned against another configured zero count (the encoder re-fitted, its new zero written in the file)

@@ -359,6 +359,10 @@ class Daemon:
         self._gnss_connected = False
         self._gnss_bad = 0  # checksum errors + garbage lines seen so far
         self._saver: threading.Thread | None = None
+        # the last sensor biases and steer zero known good (restored, or learned and saved): a save while the
+        # attitude filter doubts its biases (an alarm) or before the zero is re-learned keeps them, never drops them
+        self._kept_biases: tuple[float, ...] | None = None
+        self._kept_steer_zero: tuple[float, float] | None = None
         self._warm_up()
         self._restore_state()
         # everything built so far lives as long as the daemon: out of the garbage collector's full passes,
@@ -500,8 +504,10 @@ class Daemon:
         what = ["tyre stiffness"]
         if state.sensor_biases is not None:
             what.append("sensor biases")
+            self._kept_biases = tuple(state.sensor_biases)
         if steer_zero:
             what.append("steer zero")
+            self._kept_steer_zero = tuple(state.steer_zero)
         listed = what[0] if len(what) == 1 else f"{', '.join(what[:-1])} and {what[-1]}"
         self.state_note = f"restored learned {listed} from {path} (saved {state.saved_at})"
         if state.steer_zero is not None and not steer_zero:
@@ -512,12 +518,16 @@ class Daemon:
         log.info(self.state_note)
 
     def _stiffness_to_save(self):
-        """(stiffness, sensor biases or None) worth keeping, or None: the file is written only once the tyres
-        are learned (VALID), never with the prior as if it had been learned."""
+        """(stiffness, sensor biases or None, steer zero or None) worth keeping, or None: the file is written only
+        once the tyres are learned (VALID), never with the prior as if it had been learned. Biases or a steer zero
+        not sound at this moment (the attitude monitor's alarm; not yet re-learned) are the last known good ones."""
         if not int(self.estimates[E_VALID]) & (V_CORNERING | V_CAMBER):
             return None  # nothing learned (or restored) yet: keep the previous file
         est = self.runner.estimator
-        return [float(v) for v in est.learned_stiffness()], est.learned_sensor_biases(), est.learned_steer_zero()
+        biases, steer_zero = est.learned_sensor_biases(), est.learned_steer_zero()
+        self._kept_biases = biases = biases if biases is not None else self._kept_biases
+        self._kept_steer_zero = steer_zero = steer_zero if steer_zero is not None else self._kept_steer_zero
+        return [float(v) for v in est.learned_stiffness()], biases, steer_zero
 
     def _save_state(self, values, now: float) -> None:
         path = self.settings.runtime.state_file
