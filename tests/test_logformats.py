@@ -7,6 +7,7 @@ import io
 import json
 import os
 import random
+import re
 import shutil
 import subprocess
 import sys
@@ -345,19 +346,21 @@ def test_the_command_line_loads_mf4_support_only_for_an_mf4_log(ride, tmp_path):
         "print('PANDAS', 'pandas' in sys.modules, 'ASAMMDF', 'asammdf' in sys.modules); sys.exit(code)"
     )
 
-    def run(*args):
+    def run(*args, code=0):
         done = subprocess.run(
             [sys.executable, "-c", probe, "replay", *map(str, args), "--no-progress"],
             capture_output=True,
             text=True,
             timeout=300,
         )
-        assert done.returncode == 0, done.stderr
-        return done.stdout
+        assert done.returncode == code, done.stderr
+        return done.stdout + done.stderr
 
     assert "PANDAS False ASAMMDF False" in run(ride["candump"], "--out", tmp_path / "a.log")
     assert "ASAMMDF True" in run(ride["candump"], "--out", tmp_path / "a.mf4")
-    assert "ASAMMDF True" in run(tmp_path / "a.mf4", "--out", tmp_path / "b.log")
+    # read back: the estimator's own frames, none of them an input (one line, exit 2), but every one read
+    again = run(tmp_path / "a.mf4", "--out", tmp_path / "b.log", code=2)
+    assert "ASAMMDF True" in again and re.search(r"none of its [1-9]\d* frames is one the estimator reads", again)
     candump, _ = _frames(tmp_path / "a.log")
     mf4, _ = _frames(tmp_path / "a.mf4")
     assert len(candump) > 100 and [f[1:] for f in mf4] == [f[1:] for f in candump]  # the same frames written

@@ -226,6 +226,7 @@ def replay_log(
     in_path, out_log = Path(in_path), Path(out_log)
     wall0 = time.perf_counter()
     runner = runner or build_runner(config, design_file)
+    frames_before = _input_frames(runner)  # a runner given by the caller may have replayed other logs
     try:
         blocks, stats = open_log_arrays(in_path)
         # reported below, one line each, with what the replay did (bridged, or a new segment)
@@ -324,6 +325,19 @@ def replay_log(
         blocks.close()
     if stats.malformed:
         log.warning("%s", stats.problems_line())
+    inputs = runner.tracker.summary()
+    read = {name: n - frames_before.get(name, 0) for name, n in _input_frames(runner).items()}
+    if not any(read.values()):
+        # a log of another bus (29-bit frames, other ids): every cycle FAULT and exit 0 said nothing was wrong
+        for path in (out_log, csv_path):
+            if path is not None:
+                path.unlink(missing_ok=True)
+        skipped = feed.skipped + sum(stats.skipped.values())
+        raise EmptyLogError(
+            f"{in_path}: none of its {stats.frames} frames is one the estimator reads ({', '.join(read)}): "
+            f"{inputs.get('unknown_ids', 0)} of other ids, {skipped} skipped (29-bit, remote, error, FD); "
+            "a log of another bus?"
+        )
     wall = time.perf_counter() - wall0
     return {
         "log": str(in_path),
@@ -352,8 +366,13 @@ def replay_log(
         "sensor_fault_cycles": sensor_fault_cycles,
         "overruns": 0,  # replay is clocked by the log: there is no deadline to miss
         "final": _final_tyres(last),
-        "inputs": runner.tracker.summary(),
+        "inputs": inputs,
     }
+
+
+def _input_frames(runner: CycleRunner) -> dict[str, int]:
+    """Frames of each input the estimator reads, taken so far by the runner's input tracker."""
+    return {name: v["frames"] for name, v in runner.tracker.summary().items() if isinstance(v, dict)}
 
 
 def _final_tyres(estimates: np.ndarray) -> dict[str, Any]:
@@ -496,6 +515,7 @@ _SHORT_KEYS = (
     "reordered",
     "late_frames",
     "discontinuities",
+    "skipped_frames",
     "x_real_time",
     "modes",
 )

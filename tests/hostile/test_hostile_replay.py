@@ -245,3 +245,20 @@ def test_max_gap_option_checked(hostile_logs, tmp_path):
     for bad in (0.0, -1.0, math.nan, math.inf, 1e9, 61.0, 1e-300, 0.05):
         with pytest.raises(UserFacingError, match="--max-gap"):
             run_replay(_args([hostile_logs["gap_3s"]], tmp_path / "o.log", max_gap=bad))
+
+
+@pytest.mark.parametrize(
+    ("kind", "rewrite"),
+    [
+        ("29-bit", lambda line: line.replace(" 10", " 0000010", 1)),  # the same frames with 29-bit ids
+        ("other ids", lambda line: line.replace(" 10", " 70", 1)),  # frames of another bus
+    ],
+)
+def test_a_log_of_no_frame_the_estimator_reads_is_refused_not_replayed_as_all_fault(kind, rewrite, tmp_path, runner):
+    """It exited 0, every cycle FAULT (or no cycle at all), nothing said: one line, exit 2, no output left."""
+    path = tmp_path / "another_bus.log"
+    path.write_text("\n".join(rewrite(line) for line in clean_log_lines()) + "\n")
+    with pytest.raises(UserFacingError, match="none of its 600 frames is one the estimator reads") as info:
+        _replay(path, tmp_path, runner)
+    assert info.value.exit_code == 2 and "\n" not in str(info.value)
+    assert not (tmp_path / "another_bus.out.log").exists()
