@@ -30,30 +30,30 @@ from ptw_rt.untrusted import excerpt
 ATTITUDE_SCHEMA = Section(
     fields={},
     optional={
-        "roll_noise": (Number("rad/sqrt(s)", gt=0), 1.0e-3),
-        "heading_noise": (Number("rad/sqrt(s)", gt=0), 2.0e-3),
-        "gyro_bias_rate": (Number("rad/s/sqrt(s)", gt=0), 3.0e-5),
-        "accel_bias_rate": (Number("m/s^2/sqrt(s)", gt=0), 2.0e-4),
-        "sideslip_accel_noise": (Number("m/s^2/sqrt(s)", gt=0), 2.0),
-        "sideslip_accel_time": (Number("s", gt=0), 0.5),
-        "sideslip_time": (Number("s", gt=0), 5.0),
+        "roll_noise": (Number("rad/sqrt(s)", ge=1e-6, le=1), 1.0e-3),
+        "heading_noise": (Number("rad/sqrt(s)", ge=1e-6, le=1), 2.0e-3),
+        "gyro_bias_rate": (Number("rad/s/sqrt(s)", ge=1e-8, le=0.1), 3.0e-5),
+        "accel_bias_rate": (Number("m/s^2/sqrt(s)", ge=1e-7, le=1), 2.0e-4),
+        "sideslip_accel_noise": (Number("m/s^2/sqrt(s)", ge=1e-3, le=100), 2.0),
+        "sideslip_accel_time": (Number("s", ge=0.01, le=100), 0.5),
+        "sideslip_time": (Number("s", ge=0.01, le=1000), 5.0),
         # in a hard corner (its lean balancing a lateral acceleration g tan(roll) beyond `sideslip_dead_zone`) the
         # sideslip moves faster near the grip limit: the drive of dv_y/dt grows as sqrt(1 + (excess / this)^2)
-        "sideslip_accel_noise_ref": (Number("m/s^2", gt=0), 1.0),
+        "sideslip_accel_noise_ref": (Number("m/s^2", ge=0.01, le=100), 1.0),
         "sideslip_dead_zone": (Number("m/s^2", ge=0), 3.0),
-        "lateral_accel_noise": (Number("m/s^2", gt=0), 0.3),
-        "pitch_rate_noise": (Number("rad/s", gt=0), 0.01),
-        "course_noise_deg": (Number("deg", gt=0), 0.5),
+        "lateral_accel_noise": (Number("m/s^2", ge=1e-3, le=10), 0.3),
+        "pitch_rate_noise": (Number("rad/s", ge=1e-5, le=1), 0.01),
+        "course_noise_deg": (Number("deg", ge=0.01, le=30), 0.5),
         # a long hard corner's steady sideslip (no tyre model here to tell it from heading) enters the course
         # as noise: this many rad per m/s^2 of g tan(roll) beyond `sideslip_dead_zone`
         "course_sideslip_per_accel": (Number("rad/(m/s^2)", ge=0, le=0.1), 0.015),
-        "course_min_speed": (Number("m/s", gt=0), 3.0),
-        "innovation_gate": (Number("", gt=1), 5.0),
-        "standstill_rate_noise": (Number("rad/s", gt=0), 0.003),
-        "initial_roll_sd": (Number("rad", gt=0), 0.2),
-        "initial_gyro_bias_sd": (Number("rad/s", gt=0), 0.01),
-        "initial_accel_bias_sd": (Number("m/s^2", gt=0), 0.05),
-        "reopen_after_cycles": (Number("", integer=True, gt=0), 50),
+        "course_min_speed": (Number("m/s", gt=0, le=50), 3.0),
+        "innovation_gate": (Number("", gt=1, le=100), 5.0),
+        "standstill_rate_noise": (Number("rad/s", ge=1e-5, le=1), 0.003),
+        "initial_roll_sd": (Number("rad", ge=1e-3, le=1.5), 0.2),
+        "initial_gyro_bias_sd": (Number("rad/s", ge=1e-5, le=1), 0.01),
+        "initial_accel_bias_sd": (Number("m/s^2", ge=1e-4, le=10), 0.05),
+        "reopen_after_cycles": (Number("", integer=True, gt=0, le=100_000), 50),
         # consistency monitor (docs/estimator.md, "Attitude consistency"): the running means of the whitened
         # lateral-force and rotation-axis innovations, over this time constant, against this many standard
         # deviations of a white sequence's mean; beyond, the roll is not valid and the biases are re-learned
@@ -73,14 +73,14 @@ PLAUSIBILITY_SCHEMA = Section(
     optional={
         "window": (Number("s", gt=0.05, le=30), 1.0),
         "band_start_kmh": (NumberList(Number("km/h", ge=0), min_len=1, max_len=8), (0.0, 30.0, 60.0, 90.0)),
-        "torque_residual_nm": (NumberList(Number("N m", gt=0), min_len=1, max_len=8), (4.6, 4.8, 6.2, 8.2)),
+        "torque_residual_nm": (NumberList(Number("N m", gt=0, le=1000), min_len=1, max_len=8), (4.6, 4.8, 6.2, 8.2)),
         "hold": (Number("s", ge=0, le=60), 1.0),
         # the two torques' disagreement that lag alone makes: a threshold sqrt(residual^2 + (lag x RMS of the
         # published torque's rate)^2), so a busy rider's quick torque is not a fault (docs/estimator.md)
         "lag": (Number("s", ge=0, le=1), 0.1),
         # the residual is not taken while the most likely tyre filter's short-window NIS (expected 5) is above
         # this: both torques come from linear-tyre models, and a slide makes them disagree whatever the sensors
-        "model_max_nis_fast": (Number("", gt=0), 25.0),
+        "model_max_nis_fast": (Number("", gt=0, le=1e4), 25.0),
     },
 )
 
@@ -92,18 +92,18 @@ TYRE_BANK_SCHEMA = Section(
         "min_scale": (Number("", gt=0, le=1), 0.28),
         "max_scale": (Number("", ge=1, le=5), 1.75),
         "step": (Number("", gt=1.02, le=2), 1.15),
-        "learning_memory": (Number("s", gt=0), 10.0),
-        "idle_memory": (Number("s", gt=0), 120.0),
-        "prior_sd": (Number("", gt=0), 0.3),
-        "restored_sd": (Number("", gt=0), 0.15),
-        "consistency_window": (Number("s", gt=0), 2.0),
-        "fast_consistency_window": (Number("s", gt=0), 0.1),
+        "learning_memory": (Number("s", ge=0.1, le=3600), 10.0),
+        "idle_memory": (Number("s", ge=0.1, le=86400), 120.0),
+        "prior_sd": (Number("", ge=0.01, le=2), 0.3),
+        "restored_sd": (Number("", ge=0.01, le=2), 0.15),
+        "consistency_window": (Number("s", ge=0.05, le=60), 2.0),
+        "fast_consistency_window": (Number("s", ge=0.01, le=10), 0.1),
         # the small-slip stiffness learns below this lean: a road of mu 0.5 then uses <= 30 % of its grip, where a
         # Magic-Formula tyre's secant slope is within 3 % of its small-slip one (docs/estimator.md, "Tyres")
         "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.15),
-        "valid_log_sd": (Number("", gt=0), 0.05),
-        "valid_max_nis": (Number("", gt=0), 6.0),
-        "valid_max_nis_fast": (Number("", gt=0), 12.0),
+        "valid_log_sd": (Number("", ge=1e-3, le=0.2), 0.05),
+        "valid_max_nis": (Number("", ge=0.5, le=1000), 6.0),
+        "valid_max_nis_fast": (Number("", ge=0.5, le=1000), 12.0),
         # s the tyres stay not VALID after a short-window inconsistency (a road that changed shows there first);
         # 0.5, not 2 (2026-11-26): a slalom on soft tyres spikes it for 0.1-0.4 s at every peak, and 2 s after each
         # left `slalom_30` x0.7 VALID for 18-45 % of its second half on four of five noise seeds
@@ -113,22 +113,22 @@ TYRE_BANK_SCHEMA = Section(
         # lean beyond the linear range right after a road change moved the bank half-way) has not settled
         "settle_learning_time": (Number("s", ge=0), 0.5),
         "valid_min_evidence": (Number("s", ge=0), 2.0),
-        "min_learning_speed": (Number("m/s", gt=0), 8.0),
+        "min_learning_speed": (Number("m/s", gt=0, le=100), 8.0),
         # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
         # kinematic steer the slip angles are measured against; learning waits while that could move k by more
         # than this share (1 sd), judged over `bias_window` of a_y (docs/estimator.md, "Tyres")
         "max_learning_bias_share": (Number("", gt=0, le=1), 0.1),
         "bias_window": (Number("s", gt=0, le=60), 5.0),
-        "excitation_window": (Number("s", gt=0), 2.0),
-        "min_excitation_lateral_accel": (Number("m/s^2", gt=0), 0.8),
-        "min_excitation_yaw_rate": (Number("rad/s", gt=0), 0.04),
+        "excitation_window": (Number("s", ge=0.1, le=60), 2.0),
+        "min_excitation_lateral_accel": (Number("m/s^2", gt=0, le=20), 0.8),
+        "min_excitation_yaw_rate": (Number("rad/s", gt=0, le=5), 0.04),
         # filters run each cycle: the most likely tyre and this many on each side (a window of 2 n + 1 that
         # follows the estimate; the bank's cost is per running filter)
         "running_half_width": (Number("", integer=True, ge=1, le=64), 3),
         # no evidence about the tyres while even the best-fitting filter's short-window NIS (expected 5) is above
         # this: data no tyre explains (a faulty sensor within its range, the filters still catching up after a
         # lean beyond the tyres' linear range) would drag the estimate (25 before 2026-11-26, docs/estimator.md)
-        "max_evidence_nis_fast": (Number("", gt=0), 10.0),
+        "max_evidence_nis_fast": (Number("", gt=0, le=1e4), 10.0),
         # no hypothesis is held more than this (log-likelihood, nats) behind the best one: the most evidence a new
         # road needs to bring back a tyre the old road ruled out (mu_drop on seeds 0/3/5/7/11/13: followed within
         # 10 s on 25 of 30 rides at 30, 22 at 50; docs/estimator.md, "Memory")
@@ -141,40 +141,40 @@ ESTIMATOR_SCHEMA = Section(
         "sample_time": Number("s", ge=0.001, le=0.1),
         "speed_grid": Section(
             {
-                "min_kmh": Number("km/h", gt=0),
+                "min_kmh": Number("km/h", gt=0, le=250),
                 "max_kmh": Number("km/h", gt=0, le=250),
-                "step_kmh": Number("km/h", gt=0),
+                "step_kmh": Number("km/h", gt=0, le=250),
             }
         ),
-        "min_valid_speed_kmh": Number("km/h", gt=0),
+        "min_valid_speed_kmh": Number("km/h", gt=0, le=250),
         "uihosmo": Section(
             {
-                "decay_rate": Number("1/s", gt=0),
-                "output_weight": Number("", gt=0),
-                "differentiator_lambda": Number("", gt=0),
+                "decay_rate": Number("1/s", ge=0.1, le=300),
+                "output_weight": Number("", ge=1e-6, le=1e3),
+                "differentiator_lambda": Number("", ge=0.01, le=1e5),
             }
         ),
         "adaptive": Section(
             {
-                "decay_rate": Number("1/s", ge=0),
-                "pole_disk_radius": Number("1/s", gt=0),
+                "decay_rate": Number("1/s", ge=0, le=100),
+                "pole_disk_radius": Number("1/s", ge=1, le=1000),
                 "stiffness_deviation_bound": Number("", gt=0, lt=1),
-                "adaptation_gain": NumberList(Number("", gt=0), min_len=4, max_len=4),
-                "excitation_slip_velocity": Number("m/s", gt=0),
-                "excitation_camber_velocity": Number("m/s rad", gt=0),
-                "excitation_time_constant": Number("s", gt=0),
+                "adaptation_gain": NumberList(Number("", gt=0, le=1e15), min_len=4, max_len=4),
+                "excitation_slip_velocity": Number("m/s", gt=0, le=10),
+                "excitation_camber_velocity": Number("m/s rad", gt=0, le=100),
+                "excitation_time_constant": Number("s", ge=0.01, le=100),
             }
         ),
-        "roll_fusion_time_constant": Number("s", gt=0),
+        "roll_fusion_time_constant": Number("s", ge=0.01, le=100),
         "fusion_filter": Section(
             {
-                "process_noise": Number("1/s", gt=0),
-                "rider_torque_rate": Number("N m/sqrt(s)", gt=0),
-                "steer_noise": Number("rad", gt=0),
-                "yaw_rate_noise": Number("rad/s", gt=0),
-                "roll_rate_noise": Number("rad/s", gt=0),
-                "lateral_accel_noise": Number("m/s^2", gt=0),
-                "roll_noise": Number("rad", gt=0),
+                "process_noise": Number("1/s", ge=1e-7, le=1),
+                "rider_torque_rate": Number("N m/sqrt(s)", ge=0.1, le=1000),
+                "steer_noise": Number("rad", ge=1e-5, le=0.1),
+                "yaw_rate_noise": Number("rad/s", ge=1e-5, le=1),
+                "roll_rate_noise": Number("rad/s", ge=1e-5, le=1),
+                "lateral_accel_noise": Number("m/s^2", ge=1e-3, le=10),
+                "roll_noise": Number("rad", ge=1e-4, le=0.5),
             },
             optional={
                 # the filters whose states are published: factors on the front and rear tyre forces' process noise
@@ -182,24 +182,24 @@ ESTIMATOR_SCHEMA = Section(
                 "published_force_noise": (NumberList(Number("", ge=1, le=1000), min_len=2, max_len=2), (1.0, 1.0)),
             },
         ),
-        "force_observer_yaw_bound": Number("rad/s^3", gt=0),
-        "force_observer_lateral_bound": Number("m/s^3", gt=0),
-        "derivative_filter_hz": Number("Hz", gt=0, lt=50),
+        "force_observer_yaw_bound": Number("rad/s^3", ge=0.01, le=1e4),
+        "force_observer_lateral_bound": Number("m/s^3", ge=0.01, le=1e4),
+        "derivative_filter_hz": Number("Hz", ge=0.1, lt=50),
         "supervisor": Section(
             {
-                "converge_time": Number("s", ge=0),
-                "gps_hold_time": Number("s", ge=0),
-                "reason_hold_time": Number("s", ge=0),
-                "stiffness_valid_after": Number("s", ge=0),
+                "converge_time": Number("s", ge=0, le=600),
+                "gps_hold_time": Number("s", ge=0, le=60),
+                "reason_hold_time": Number("s", ge=0, le=60),
+                "stiffness_valid_after": Number("s", ge=0, le=3600),
                 "max_roll": Number("rad", gt=0, le=1.5),
-                "max_rider_torque": Number("N m", gt=0),
-                "max_tyre_force": Number("N", gt=0),
-                "max_lateral_velocity": Number("m/s", gt=0),
-                "max_abs_rate": Number("rad/s", gt=0),
-                "max_abs_accel": Number("m/s^2", gt=0),
-                "max_gps_speed": Number("m/s", gt=0),
-                "stiffness_max_residual": Number("m/s^2", gt=0),
-                "adaptation_max_residual": Number("m/s^2", gt=0),
+                "max_rider_torque": Number("N m", gt=0, le=1e4),
+                "max_tyre_force": Number("N", gt=0, le=1e6),
+                "max_lateral_velocity": Number("m/s", gt=0, le=100),
+                "max_abs_rate": Number("rad/s", gt=0, le=50),
+                "max_abs_accel": Number("m/s^2", gt=0, le=500),
+                "max_gps_speed": Number("m/s", gt=0, le=150),
+                "stiffness_max_residual": Number("m/s^2", gt=0, le=100),
+                "adaptation_max_residual": Number("m/s^2", gt=0, le=100),
             },
             # the published roll's valid bit: 3 sigma of its own uncertainty within this. The attitude
             # filter's covariance is conservative (a sustained sideslip acceleration is not separable from
@@ -220,7 +220,8 @@ SENSORS_SCHEMA = Section(
     fields={},
     optional={
         "steer_zero_count": (Number("count", ge=0, lt=1024), 512.0),
-        "steer_counts_per_rev": (Number("count", integer=True, gt=0), 1024),
+        # the DBC's SteerCount is 10 bits: at most 1024 counts a revolution (below 64 a count is beyond 5.6 deg)
+        "steer_counts_per_rev": (Number("count", integer=True, ge=64, le=1024), 1024),
         "imu_height": (Number("m", ge=0, le=2), 0.5),
         "imu_forward": (Number("m", ge=-2, le=2), 0.0),
         "gps_latency": (Number("s", ge=0, le=1), 0.1),
@@ -228,8 +229,8 @@ SENSORS_SCHEMA = Section(
         "speed_bias_gain": (Number("", ge=0, le=1), 0.02),
         # at standstill the true body rates are zero: what the gyros read is their bias
         "gyro_calibration_speed": (Number("m/s", ge=0, le=2), 0.3),
-        "gyro_calibration_time_constant": (Number("s", gt=0), 5.0),
-        "gyro_calibration_max_rate": (Number("rad/s", gt=0), 0.05),
+        "gyro_calibration_time_constant": (Number("s", ge=0.1, le=3600), 5.0),
+        "gyro_calibration_max_rate": (Number("rad/s", gt=0, le=1), 0.05),
         # steer-encoder zero learned riding straight (docs/estimator.md, "Steer zero"): its time constant in
         # seconds of straight riding, and how far from steer_zero_count it may move (a slipped encoder,
         # beyond, stays a fault for the steer check)
@@ -294,7 +295,7 @@ BUS_SCHEMA = Section(
     optional={
         "interface": (Text(doc="python-can interface: socketcan, virtual, ..."), "socketcan"),
         "channel": (Text(doc="e.g. can0, vcan0, or a virtual bus name"), "can0"),
-        "bitrate": (Number("bit/s", integer=True, gt=0), 500000),
+        "bitrate": (Number("bit/s", integer=True, ge=10_000, le=8_000_000), 500000),
         "send_retries": (Number("", integer=True, ge=0, le=10), 1),
     },
 )
@@ -307,7 +308,7 @@ GPS_SCHEMA = Section(
             "can",
         ),
         "serial_port": (Text(doc="e.g. /dev/serial/by-id/usb-u-blox_GNSS_receiver-if00"), "/dev/ttyACM0"),
-        "serial_baudrate": (Number("baud", integer=True, gt=0), 9600),
+        "serial_baudrate": (Number("baud", integer=True, ge=1200, le=4_000_000), 9600),
     },
 )
 
@@ -320,8 +321,8 @@ RUNTIME_SCHEMA = Section(
         # a message is stale after this many of its DBC cycle times without a valid frame
         "stale_after_periods": (Number("", gt=1, le=100), 3.0),
         "state_file": (Text(doc="learned tyre stiffness, saved atomically"), "/var/lib/ptw-rt/state.json"),
-        "state_save_interval_s": (Number("s", gt=0), 60.0),
-        "health_log_interval_s": (Number("s", gt=0), 10.0),
+        "state_save_interval_s": (Number("s", ge=1, le=86400), 60.0),
+        "health_log_interval_s": (Number("s", ge=1, le=86400), 10.0),
         "log_repeat_interval_s": (Number("s", ge=0), 5.0),
         "log_level": (Text(choices=("DEBUG", "INFO", "WARNING", "ERROR")), "INFO"),
         "realtime": (REALTIME_SCHEMA, REALTIME_SCHEMA.check("runtime.realtime", {})),
@@ -600,6 +601,11 @@ def _tuning(est: dict[str, Any], source: str) -> EstimatorTuning:
             f"{source}: estimator.speed_grid gives {speeds:.0f} design speeds, at most {MAX_GRID_SPEEDS}: raise "
             "step_kmh (each speed is a design of every observer, and a table row in the design file the daemon loads)"
         )
+    if est["min_valid_speed_kmh"] > grid["max_kmh"]:
+        raise ConfigError(
+            f"{source}: estimator.min_valid_speed_kmh ({est['min_valid_speed_kmh']}) is above the design grid "
+            f"(speed_grid.max_kmh = {grid['max_kmh']}): nothing would ever be valid"
+        )
     if est["min_valid_speed_kmh"] < grid["min_kmh"]:
         raise ConfigError(
             f"{source}: estimator.min_valid_speed_kmh ({est['min_valid_speed_kmh']}) is below the design grid "
@@ -642,9 +648,18 @@ def settings_from_mapping(doc: Any, source: str) -> Settings:
         vehicle=vehicle,
         estimator=_tuning(validated["estimator"], source),
         config_hash=canonical_hash({k: validated[k] for k in DESIGN_SECTIONS}),
-        sensors=sensors_from_mapping(validated["sensors"]),
+        sensors=_sensors(validated["sensors"], source),
         runtime=runtime_from_mapping(validated["runtime"]),
     )
+
+
+def _sensors(values: dict[str, Any], source: str) -> SensorSettings:
+    if values["steer_zero_count"] >= values["steer_counts_per_rev"]:
+        raise ConfigError(
+            f"{source}: sensors.steer_zero_count ({values['steer_zero_count']}) must be below steer_counts_per_rev "
+            f"({values['steer_counts_per_rev']})"
+        )
+    return sensors_from_mapping(values)
 
 
 def load_settings(path: str | Path) -> Settings:

@@ -63,6 +63,15 @@ def test_default_config_loads(settings):
         ({"estimator__adaptive__adaptation_gain": [1, 2, 3]}, "expected 4..4 items"),
         ({"estimator__adaptive__adaptation_gain": ["2.0e5", 1, 1, 1]}, "write 2.0e+5"),
         ({"estimator": DELETE}, "estimator: missing required key"),
+        # nonsense tuning that designed STABLE and ran: a steer noise of 1e-300 rad published the torque VALID at
+        # 209 % of the peak with the wrong sign; a validity speed beyond the grid, never valid
+        ({"estimator__fusion_filter__steer_noise": 1e-300}, "steer_noise: must be >= 1e-05"),
+        ({"estimator__fusion_filter__process_noise": 1e300}, "process_noise: must be <= 1"),
+        ({"estimator__uihosmo__differentiator_lambda": 1e300}, "differentiator_lambda: must be <= 100000"),
+        ({"estimator__roll_fusion_time_constant": 1e-300}, "roll_fusion_time_constant: must be >= 0.01"),
+        ({"estimator__min_valid_speed_kmh": 200}, "above the design grid"),
+        ({"sensors": {"steer_counts_per_rev": 1}}, "steer_counts_per_rev: must be >= 64"),
+        ({"sensors": {"steer_counts_per_rev": 256}}, "steer_zero_count (512.0) must be below steer_counts_per_rev"),
     ],
 )
 def test_config_errors_name_the_key(tmp_path, changes, message):
