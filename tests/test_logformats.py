@@ -219,6 +219,16 @@ def _hostile_blfs(blf_bytes: bytes, d: Path) -> dict[str, Path]:
     body = blf.LOG_CONTAINER_STRUCT.pack(blf.ZLIB_DEFLATE, 64 << 20) + packed
     obj = blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, 16 + len(body), blf.LOG_CONTAINER) + body
     files["zip_bomb"] = blf_bytes[:144] + obj + bytes(-len(obj) % 4) + blf_bytes[144:]
+    # a container within the size bound whose CAN objects, repeated, pack 100s of times (an expansion bomb: 200 of
+    # them made 10 MB of file take minutes)
+    size = blf.OBJ_HEADER_BASE_STRUCT.unpack_from(blf_bytes, 144)[3]
+    first = blf_bytes[144 + 16 + blf.LOG_CONTAINER_STRUCT.size : 144 + size]
+    objects = zlib.decompress(first)
+    unpacked = objects * ((8 << 20) // len(objects))
+    packed = zlib.compress(unpacked, 9)
+    body = blf.LOG_CONTAINER_STRUCT.pack(blf.ZLIB_DEFLATE, len(unpacked)) + packed
+    obj = blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, 16 + len(body), blf.LOG_CONTAINER) + body
+    files["expansion_bomb"] = blf_bytes[:144] + obj + bytes(-len(obj) % 4) + blf_bytes[144:]
     out = {}
     for name, data in files.items():
         (d / f"{name}.blf").write_bytes(data)
@@ -252,7 +262,7 @@ def test_hostile_blf_never_hangs_raises_or_balloons(ride, tmp_path):
         assert len(frames) <= n_good, name
         if name != "header_only":
             assert stats.malformed >= 1, (name, stats.rejected)
-        if name in ("zero_size_object", "huge_size_object", "zip_bomb"):
+        if name in ("zero_size_object", "huge_size_object", "zip_bomb", "expansion_bomb"):
             assert len(frames) == n_good, name  # the bad object skipped, every frame after it read
         if name == "garbage_inside":
             assert len(frames) > n_good // 2, name

@@ -91,6 +91,9 @@ EXTENSIONS = {
 SNIFF_BYTES = 64 << 10
 MAX_TEXT_LINE = 1024  # ASC/TRC lines of CAN FD frames reach ~400 characters; ours are < 100
 MAX_BLF_OBJECT = 16 << 20  # an object, a container and a container's unpacked data (writers use 128 KiB)
+# a container's unpacked data at most this many times its packed size (CAN objects pack ~4x: python-can's writer
+# 4.2x): 200 containers of 48 kB that each unpacked to 16 MiB (340x) made a 9.8 MB file of 7e7 frames, minutes a MB
+MAX_BLF_EXPANSION = 64
 MAX_MF4_RATIO = 1100  # deflate expands at most ~1032x: more records than this allows are a lie
 _READ_CHUNK = 1 << 20
 ARRAY_BLOCK_FRAMES = 32768  # open_log_arrays: frames of a non-candump log gathered per block
@@ -553,6 +556,16 @@ class _BlfReader(_MessageReader):
                     yield Problem(
                         self._record + 1,
                         f"container at byte {offset} unpacks to more than {MAX_BLF_OBJECT >> 20} MiB",
+                        "",
+                        "malformed",
+                    )
+                    self._tail, self._lost = b"", True
+                    continue
+                if len(data) > MAX_BLF_EXPANSION * len(payload) + 4096:
+                    yield Problem(
+                        self._record + 1,
+                        f"container at byte {offset} unpacks {len(data) / max(len(payload), 1):.0f} times its size "
+                        f"(CAN data packs ~4x; at most {MAX_BLF_EXPANSION}x)",
                         "",
                         "malformed",
                     )
