@@ -15,6 +15,7 @@ import pytest
 
 from ptw_rt.apps.fleet import FLEET_COLUMNS, ListFileError, read_list_file
 from ptw_rt.apps.replay import replay_log
+from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_CONFIG
 
 RIDES = (("dlc_50", 6.0, "a"), ("slalom_30", 8.0, "b/c"), ("dlc_100", 5.0, "b"))
@@ -165,3 +166,46 @@ def test_dask_with_one_log_says_it_replays_here(tree, tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "replay: one log is replayed in this process" in proc.stderr
     assert out.read_bytes() == expected[rel]
+
+
+@pytest.mark.parametrize(
+    ("reply", "message"),
+    [
+        (b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n" * 10, "what answered is not a Dask scheduler"),
+        (b"", "no Dask scheduler answered within"),
+    ],
+)
+def test_a_server_that_is_not_a_dask_scheduler_is_one_line(monkeypatch, reply, message):
+    """An HTTP server sent dask allocating 3 EiB (a traceback); one that accepts and says nothing held the command
+    past a minute (dask's timeout is the connection's, not the handshake's)."""
+    pytest.importorskip("dask.distributed")
+    import socket
+    import threading
+
+    from ptw_rt.apps import fleet
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+    held = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            held.append(conn)
+            if reply:
+                conn.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+    monkeypatch.setattr(fleet, "DASK_CONNECT_TIMEOUT_S", 1.0)
+    try:
+        with pytest.raises(UserFacingError, match=message) as info:
+            fleet._dask_client(f"tcp://127.0.0.1:{server.getsockname()[1]}", 1)
+        assert "\n" not in str(info.value)
+    finally:
+        server.close()
+        for conn in held:
+            conn.close()

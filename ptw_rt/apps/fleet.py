@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -23,12 +24,13 @@ from typing import Any
 
 from ptw_rt.core.layout import MODE_NAMES
 from ptw_rt.errors import UserFacingError
-from ptw_rt.untrusted import UntrustedFileError, decode_utf8, read_bounded
+from ptw_rt.untrusted import UntrustedFileError, decode_utf8, read_bounded, short_text
 
 __all__ = ["FLEET_COLUMNS", "fleet_rows", "read_list_file", "run_jobs", "write_fleet_summary"]
 
 MAX_LIST_BYTES = 16 * 1024 * 1024  # a list file of ~100 000 paths
 MAX_LIST_ENTRIES = 200_000
+DASK_CONNECT_TIMEOUT_S = 10.0  # dask's connect timeout; the handshake gets 5 s more
 SENSOR_FAULT_REASONS = ("sensor_stale", "out_of_range", "decode_errors", "counter_jumps")
 
 FLEET_COLUMNS = (
@@ -89,12 +91,34 @@ def _dask_client(address: str, workers: int):
             n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
         )
         return Client(cluster), cluster
-    try:
-        return Client(address, timeout="10s"), None
-    except ValueError as exc:  # not an address dask can parse ("missing port number", unknown protocol)
+    # dask's own timeout covers the connection, not the handshake: a server that accepts and never answers held the
+    # command past a minute, and one that answers with something else (HTTP) sent dask allocating exabytes
+    outcome: dict[str, Any] = {}
+
+    def connect() -> None:
+        try:
+            outcome["client"] = Client(address, timeout=f"{DASK_CONNECT_TIMEOUT_S:g}s")
+        except BaseException as exc:  # noqa: BLE001 - reported below as one line, whatever dask raised
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=connect, name="ptw-rt-dask-connect", daemon=True)
+    thread.start()
+    thread.join(DASK_CONNECT_TIMEOUT_S + 5.0)
+    exc = outcome.get("error")
+    if "client" in outcome:
+        return outcome["client"], None
+    if thread.is_alive():
+        raise UserFacingError(
+            f"--dask {address}: no Dask scheduler answered within {DASK_CONNECT_TIMEOUT_S + 5.0:g} s (a server that "
+            "accepts and says nothing)"
+        )
+    if isinstance(exc, ValueError) and not isinstance(exc, MemoryError):  # an address dask cannot parse
         raise UserFacingError(f"--dask {address}: not a Dask scheduler address ({exc}); e.g. tcp://host:8786") from None
-    except (OSError, TimeoutError) as exc:
+    if isinstance(exc, (OSError, TimeoutError)):
         raise UserFacingError(f"--dask {address}: cannot reach the Dask scheduler ({exc})") from None
+    raise UserFacingError(
+        f"--dask {address}: what answered is not a Dask scheduler ({type(exc).__name__}: {short_text(str(exc), 80)})"
+    ) from None
 
 
 def run_jobs(
