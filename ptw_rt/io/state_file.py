@@ -286,6 +286,19 @@ def _check_value(spec: StateField, value: Any, bounds: Bounds | None) -> str | N
     return None
 
 
+class _DuplicateKeyError(Exception):
+    """A key written twice in one JSON object (not a ValueError: json.loads would report it as bad JSON)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKeyError(key)
+        out[key] = value
+    return out
+
+
 def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None) -> tuple[LoadedState | None, str]:
     """Read a state file written by ``save_state`` for the configuration ``config_hash``.
 
@@ -309,7 +322,9 @@ def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None)
         detail = str(exc).removeprefix(f"{path}: state file ")
         return None, f"state file {path} is not valid JSON: {detail}"
     try:
-        doc = json.loads(text)
+        doc = json.loads(text, object_pairs_hook=_unique_keys)
+    except _DuplicateKeyError as exc:  # the last one would win: an out-of-range first value hidden behind it
+        return None, f"state file {path}: key {excerpt(str(exc), 40)} written twice in one object"
     except (ValueError, RecursionError) as exc:  # JSONDecodeError is a ValueError; so is an int too long
         return None, f"state file {path} is not valid JSON: {excerpt(str(exc), 80)}"
     if not isinstance(doc, dict):

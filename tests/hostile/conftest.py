@@ -212,6 +212,13 @@ def build_states(d: Path, config_hash: str, nominal: np.ndarray) -> dict[str, Pa
             "value_x1000": _write(d / "x1000.json", state_doc(config_hash, values(scale=1000.0))),
             "value_1e-300": _write(d / "tiny.json", state_doc(config_hash, values(fixed=1e-300))),
             "value_nan": _write(d / "nan.json", state_doc(config_hash, values(fixed=float("nan")))),
+            # the last one would win: an absurd first value hidden behind a plausible second
+            "duplicate_key": _write(
+                d / "dup.json",
+                state_doc(config_hash, values(1.0)).replace(
+                    '"front_cornering": ', '"front_cornering": 1e9, "front_cornering": ', 1
+                ),
+            ),
         }
     )
     return files

@@ -255,6 +255,7 @@ STATE_NAMES = [
     "value_x1000",
     "value_1e-300",
     "value_nan",
+    "duplicate_key",
 ]
 
 
@@ -278,6 +279,11 @@ def test_absurd_learned_values_are_rejected_not_clipped(name, hostile_states, co
     state, reason = load_state(hostile_states[name], committed_design.config_hash, bounds)
     assert state is None
     assert "refused whole" in reason and "outside the learnable range" in reason
+
+
+def test_a_key_written_twice_refuses_the_state_file(hostile_states, committed_design, bounds):
+    state, reason = load_state(hostile_states["duplicate_key"], committed_design.config_hash, bounds)
+    assert state is None and "front_cornering" in reason and "written twice" in reason
 
 
 def test_state_within_bounds_restores(tmp_path, committed_design, bounds):
