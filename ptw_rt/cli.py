@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from importlib import metadata
 from pathlib import Path
 
@@ -351,8 +352,16 @@ def missing_extra(exc: ModuleNotFoundError) -> str | None:
     return f"needs the '{extra}' extra ({module} is not installed): pip install 'ptw-rt[{extra}]'"
 
 
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001 - warnings' API
+    """A library's warning (scipy's LinAlgWarning on an ill-conditioned vehicle, numpy's on an empty mean) as one
+    line, not Python's two with a source line: a refusal stays readable."""
+    text = " ".join(str(message).split())
+    print(f"ptw-rt: warning: {category.__name__}: {text[:200]}", file=file or sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     _deferred_imports.install()  # python-can's MF4 support (asammdf, pandas) only when a log needs it
+    warnings.showwarning = _warning_line
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -123,6 +123,8 @@ def test_cli_list_and_errors(capsys):
     assert "not a number" in capsys.readouterr().err
     assert main(["simulate", "--scenario", "dlc_50", "--perturb", "stiffness"]) == 2
     assert "KEY=VALUE" in capsys.readouterr().err
+    assert main(["simulate", "--scenario", "dlc_50", "--perturb", "stiffness=0.5", "--perturb", "stiffness=2"]) == 2
+    assert "stiffness given twice (0.5 and 2)" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("plot", [False, True])

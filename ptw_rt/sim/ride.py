@@ -183,6 +183,8 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
             raise UserFacingError(f"--perturb {item!r}: roll_gyro_bias_step must be within -1 .. 1 rad/s")
         if key in ("steer_offset", "steer_offset_step") and not (-100 <= value <= 100 and value == int(value)):
             raise UserFacingError(f"--perturb {item!r}: {key} is an integer number of counts, |.| <= 100")
+        if key in values and values[key] != value:  # which one was meant? (the last one won, silently)
+            raise UserFacingError(f"--perturb {key} given twice ({values[key]:g} and {value:g})")
         values[key] = value
     return Perturbation(**values)
 
