@@ -232,6 +232,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--random-seed", type=int, default=0, metavar="G", help="with --random: which set of rides (default 0)"
     )
     p.add_argument(
+        "--routes",
+        action="store_true",
+        help="with --random: each ride a random route (route_N: segments nobody tuned on) instead of the scenarios",
+    )
+    p.add_argument(
         "--jobs",
         type=_worker_count,
         default=None,

@@ -100,6 +100,7 @@ def test_the_command_runs_rides_and_prints_json():
         ["--random", "2", "--matrix"],
         ["--random", "2", "--perturb", "stiffness=0.7"],
         ["--random", "2", "--seed", "3"],
+        ["--routes", "--scenario", "dlc_50"],  # --routes goes with --random
     ],
 )
 def test_a_bad_request_is_one_line_and_exit_2(args):

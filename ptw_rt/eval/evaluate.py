@@ -27,7 +27,7 @@ from ptw_rt.errors import UserFacingError
 from ptw_rt.output import emit
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.sim.recording import encode_frames
-from ptw_rt.sim.ride import Ride, parse_perturbations, simulate
+from ptw_rt.sim.ride import Ride, get_scenario, parse_perturbations, simulate
 from ptw_rt.sim.scenarios import SCENARIOS
 
 SETTLE_S = 5.0  # s: observers start, converge (2 s) and the fusion filter forgets its start (2 s)
@@ -453,6 +453,8 @@ def _run_all(jobs: list[tuple]) -> list[dict]:
 
 
 def run_evaluate(args) -> int:
+    if getattr(args, "routes", False) and getattr(args, "random", None) is None:
+        raise UserFacingError("--routes goes with --random N (one route alone: --scenario route_N)")
     if getattr(args, "random", None) is not None:  # first: it refuses the options it would ignore, --matrix too
         from ptw_rt.eval.random_rides import run_random_command
 
@@ -463,8 +465,8 @@ def run_evaluate(args) -> int:
         return run_matrix_command(args)
     if not args.all and not args.scenario:
         raise UserFacingError("give --scenario NAME, --all or --matrix")
-    if args.scenario and args.scenario not in SCENARIOS:
-        raise UserFacingError(f"unknown scenario {args.scenario!r}; available: {', '.join(SCENARIOS)}")
+    if args.scenario:
+        get_scenario(args.scenario)  # an unknown name: one line
     names = list(SCENARIOS) if args.all else [args.scenario]
     jobs = [(n, args.seed, args.perturb, args.config, args.design_file) for n in names]
     if getattr(args, "markdown", False):

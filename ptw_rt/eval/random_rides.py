@@ -32,6 +32,7 @@ from ptw_rt.output import emit
 from ptw_rt.parallel import map_in_processes, worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
+from ptw_rt.sim.routes import MAX_ROUTE, ROUTE_PREFIX
 
 # the scenarios in turn (ride i is SCENARIOS[i % 8]); fixed here rather than taken from the simulator's registry:
 # a scenario added there must not change which ride is ride i of set G
@@ -63,15 +64,17 @@ MAX_GENERATOR_SEED = 10**9  # sets: ride i of set G draws from a generator seede
 WORST_SHOWN = 5
 
 
-def draw_ride(generator_seed: int, index: int) -> tuple[str, tuple[str, ...], int]:
-    """(scenario, perturbations, noise seed) of ride `index` of set `generator_seed`."""
+def draw_ride(generator_seed: int, index: int, routes: bool = False) -> tuple[str, tuple[str, ...], int]:
+    """(scenario, perturbations, noise seed) of ride `index` of set `generator_seed`; with `routes`, the ride is a
+    random route (``route_N``, ``ptw_rt.sim.routes``) drawn last, so the other draws are the same as without."""
     rng = np.random.default_rng(1000 + index + 1000 * generator_seed)
     perturb = []
     for name, low, high in DRAWS:
         value = float(rng.integers(low, high + 1)) if name in WHOLE_COUNTS else float(rng.uniform(low, high))
         perturb.append(f"{name}={value:.3f}")
     seed = int(rng.integers(*NOISE_SEEDS))
-    return SCENARIOS[index % len(SCENARIOS)], tuple(perturb), seed
+    scenario = f"{ROUTE_PREFIX}{int(rng.integers(0, MAX_ROUTE))}" if routes else SCENARIOS[index % len(SCENARIOS)]
+    return scenario, tuple(perturb), seed
 
 
 def reproduce_command(ride: dict) -> str:
@@ -193,10 +196,11 @@ def run_random(
     design_file: Path | None = None,
     workers: int | None = None,
     progress: bool = True,
+    routes: bool = False,
 ) -> dict:
     jobs = []
     for i in range(count):
-        scenario, perturb, seed = draw_ride(generator_seed, i)
+        scenario, perturb, seed = draw_ride(generator_seed, i, routes)
         jobs.append((scenario, perturb, seed, config, design_file))
     bar = Progress(len(jobs), label="random rides") if progress else None
     t0 = time.perf_counter()
@@ -205,6 +209,7 @@ def run_random(
         bar.finish()
     return {
         "generator_seed": generator_seed,
+        "routes": routes,
         "summary": summarise(rides),
         "rides_detail": rides,
         "wall_s": round(time.perf_counter() - t0, 1),
@@ -221,7 +226,8 @@ def summary_text(result: dict) -> str:
         return "kept" if s["promises_kept"][name] else "BROKEN"
 
     lines = [
-        f"{n} random rides (set {result['generator_seed']}) on {result['workers']} processes in {result['wall_s']} s",
+        f"{n} random rides (set {result['generator_seed']}{', random routes' if result.get('routes') else ''}) on"
+        f" {result['workers']} processes in {result['wall_s']} s",
         f"roll: <= the peer on {roll['le_peer']} of {roll['scored']}, <= {ROLL_MAX_DEG:g} deg on {roll['le_1deg']};"
         f" largest RMSE {roll['largest_rmse_deg']} deg",
         f"roll while VALID: largest error {roll['largest_valid_err_deg']} deg"
@@ -280,6 +286,7 @@ def run_random_command(args) -> int:
         config=args.config,
         design_file=args.design_file,
         workers=getattr(args, "jobs", None),
+        routes=getattr(args, "routes", False),
     )
     emit(result, args.json, summary_text(result) if not args.json else "")
     return 0

@@ -22,9 +22,11 @@ from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.sim import loop
 from ptw_rt.sim.plant import NX, PSI, XPOS, YPOS, Longitudinal, LowSpeed, PlantConfig, U, effective_mass, pack
 from ptw_rt.sim.rider import NCS, RiderConfig, design_lean_schedule, ou_noise, pack_rider
+from ptw_rt.sim.routes import MAX_ROUTE, ROUTE_PREFIX, route_scenario
 from ptw_rt.sim.scenarios import PLAN_DT, SCENARIOS, FaultEvent, Plan, Scenario
 from ptw_rt.sim.sensors import MessageStream, SensorConfig, SensorFrame, make_sensor_streams
 from ptw_rt.sim.tyres import TyreShape
+from ptw_rt.untrusted import excerpt
 
 PLANT_DT = 1e-3  # s, RK4 step (1 kHz)
 TRUTH_DT = 0.01  # s, truth sampling (100 Hz)
@@ -245,10 +247,16 @@ class Ride:
 
 
 def get_scenario(name: str) -> Scenario:
-    try:
+    """One of the eight scenarios, or ``route_N``: random route N (``ptw_rt.sim.routes``)."""
+    if name in SCENARIOS:
         return SCENARIOS[name]
-    except KeyError:
-        raise UserFacingError(f"unknown scenario {name!r}; available: {', '.join(SCENARIOS)}") from None
+    number = name[len(ROUTE_PREFIX) :] if name.startswith(ROUTE_PREFIX) else ""
+    if number.isascii() and number.isdigit() and len(number) <= 9:
+        return route_scenario(int(number))
+    raise UserFacingError(
+        f"unknown scenario {excerpt(name, 40)}; available: {', '.join(SCENARIOS)}, or {ROUTE_PREFIX}N (a random route, "
+        f"N = 0..{MAX_ROUTE - 1})"
+    )
 
 
 def _progress(label: str, frac: float, enabled: bool) -> None:

@@ -11,6 +11,7 @@ import numpy as np
 from ptw_rt.errors import UserFacingError
 from ptw_rt.schema import ConfigError
 from ptw_rt.sim.ride import NoRiderError, Ride, get_scenario, parse_perturbations, simulate
+from ptw_rt.sim.routes import MAX_ROUTE, ROUTE_DURATION, ROUTE_PREFIX
 from ptw_rt.sim.scenarios import SCENARIOS
 
 
@@ -19,6 +20,10 @@ def list_scenarios() -> str:
     lines = [f"{'scenario':<{width}}  duration  seed  description"]
     for s in SCENARIOS.values():
         lines.append(f"{s.name:<{width}}  {s.duration:6.0f} s  {s.seed:4d}  {s.description}")
+    lines.append(
+        f"{ROUTE_PREFIX + 'N':<{width}}  {ROUTE_DURATION:6.0f} s        a random route, N = 0..{MAX_ROUTE - 1}: "
+        "segments drawn from N (ptw_rt/sim/routes.py), rides nobody tuned on"
+    )
     return "\n".join(lines)
 
 
