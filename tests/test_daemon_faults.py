@@ -601,6 +601,29 @@ def test_restart_with_learned_stiffness_through_the_state_file(tmp_path):
     np.testing.assert_allclose(again.stiffness, learned, rtol=1e-9)
 
 
+def test_a_stop_saves_what_was_valid_earlier_in_the_ride(tmp_path):
+    """The tyres are never VALID at a stop (below the validity speed), and SIGTERM comes at a stop (ignition off):
+    the file was written only while VALID, so a ride's learning was lost. A stop saves the stiffness last VALID."""
+    state = tmp_path / "state.json"
+    daemon = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    learned = daemon.runner.estimator.design.ad_theta_nominal * 0.85
+
+    def learn_then_stop_riding(now, e):
+        if daemon.cycles == 20:
+            daemon.runner.estimator.restore_stiffness(learned)
+        if 20 <= daemon.cycles < 30:
+            e[E_VALID] = int(e[E_VALID]) | V_CORNERING | V_CAMBER
+        if daemon.cycles == 31:  # the bank moves on once the ride stops
+            daemon.runner.estimator.restore_stiffness(learned * 2.0)
+
+    daemon.on_cycle = learn_then_stop_riding
+    _run(daemon, 0.6)
+    assert daemon.cycles > 40
+    saved, reason = load_state(state, daemon.settings.config_hash)
+    assert saved is not None, reason
+    np.testing.assert_allclose(saved.stiffness, learned, rtol=1e-9)
+
+
 def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
     """The attitude filter's biases are saved with the tyres and start the next boot (rather than 10 s of
     re-learning from the configured zero); a file of before they were kept restores the tyres alone."""

@@ -41,6 +41,7 @@ def _ride(**kw):
         "roll_valid_max_err_deg": 0.6,
         "roll_tolerance_deg": 3.0,
         "torque_pct_of_peak": 10.0,
+        "torque_valid_max_mean_err_nm": 2.5,
         "stiffness_valid_max_err_pct": 8.0,
         "stiffness_valid_mean_err_pct": 4.0,
         "alarm_cycles": {"plausibility": 0, "attitude_consistency": 0},

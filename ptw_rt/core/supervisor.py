@@ -53,9 +53,12 @@ from ptw_rt.core.layout import (
     MODE_INIT,
     MODE_VALID,
     REASON_ATTITUDE_INCONSISTENT,
+    REASON_COUNTER_JUMPS,
+    REASON_DECODE_ERRORS,
     REASON_DIVERGING,
     REASON_GPS_LOST,
     REASON_IMPLAUSIBLE,
+    REASON_OUT_OF_RANGE,
     REASON_SPEED_LOW,
     REASON_STALE,
     V_CAMBER,
@@ -105,6 +108,7 @@ STATE = Layout(
     ST_STEER_IMPLAUSIBLE_UNTIL,
 ) = STATE.offsets
 MAX_BANDS = 8  # speed bands of the plausibility threshold
+CORRUPT_INPUT = REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
 RESIDUAL_CLIP = 2.0  # thresholds: bound of one cycle's torque difference in the plausibility window
 MAX_TORQUE_RATE = 200.0  # N m/s: bound of one cycle's published torque rate in its mean square (a restart's jump)
 # The steer-kinematics check (`_steer_kinematics`, docs/estimator.md "Plausibility"): the 0.3 s running mean of
@@ -390,7 +394,7 @@ def supervisor_stage(
     _raise(st, (reasons_now | REASON_DIVERGING) if diverged else reasons_now, prm[P_REASON_HOLD])
     if attitude[att.OUT_INCONSISTENT] != 0.0:  # held by the attitude stage's own monitor
         reasons_now |= REASON_ATTITUDE_INCONSISTENT
-    held = _held_reasons(st)
+    held = _held_reasons(st)  # includes this cycle's events
     # no input the checks flagged this cycle (held or doubtful steer, rates or a_y): neither monitor compares
     sound = reasons_now & INPUT_FAULTS == 0
     # ... and the torque monitor not while one is held either (the channels re-converge after it)
@@ -424,7 +428,12 @@ def supervisor_stage(
 
     valid = 0
     attitude_consistent = attitude[att.OUT_INCONSISTENT] == 0.0
-    if core_ok and not steer_implausible:
+    # corrupt input within the hold time (out of range, broken counters, undecodable frames): what of it passed every
+    # check went into the steer angle, the rates and the lateral filters, whose estimates have no uncertainty of
+    # their own to show it (random payload bytes on the encoder put the torque at 41-49 N m for 0.2 s, 5 N m true,
+    # VALID: random ride set 11, `sensor_faults` seed 6666); the roll is the exception, its own uncertainty says
+    corrupt = held & CORRUPT_INPUT != 0
+    if core_ok and not steer_implausible and not corrupt:
         valid |= V_STEER
         if attitude_consistent:  # the roll rate is the gyro less a bias the monitor doubts
             valid |= V_ROLL_RATE
@@ -438,7 +447,7 @@ def supervisor_stage(
         and attitude[att.OUT_REJECTED_RUN] < prm[P_MAX_REJECTED]
     ):
         valid |= V_ROLL
-    if run and run_time >= prm[P_CONVERGE_TIME]:  # the observers have settled
+    if run and run_time >= prm[P_CONVERGE_TIME] and not corrupt:  # the observers have settled, on sound input
         if not steer_implausible:
             valid |= V_STEER_RATE
         if not (implausible or steer_implausible):  # the diverse channels do not contradict it

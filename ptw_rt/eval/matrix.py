@@ -162,6 +162,26 @@ def roll_valid_stats(evaluation, tolerance_deg: float | None) -> dict:
     }
 
 
+TORQUE_MEAN_S = 0.2  # s: the torque's VALID error is measured on centred means this long (a rider's jab is faster)
+
+
+def torque_valid_stats(evaluation) -> dict:
+    """The rider torque while `EST_RiderTorque_Valid`: the largest |error| of its 0.2 s centred mean (an unknown input
+    estimated as a random walk lags a jab of the rider's; what a consumer of the torque uses is its trend) and the
+    99th percentile of the |error| cycle by cycle, in N m, and the share flagged valid."""
+    E, m, t = evaluation.estimates, evaluation.mask, evaluation.t
+    valid = m & ((E[:, L.E_VALID].astype(np.int64) & L.V_RIDER_TORQUE) != 0)
+    err = E[:, L.E_RIDER_TORQUE] - evaluation.truth["rider_torque"]
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.01
+    n = max(1, int(round(TORQUE_MEAN_S / dt)) | 1)
+    mean = np.convolve(err, np.ones(n) / n, mode="same")
+    return {
+        "max_mean_err_nm": _r(float(np.max(np.abs(mean[valid])))) if valid.any() else None,
+        "p99_err_nm": _r(float(np.percentile(np.abs(err[valid]), 99))) if valid.any() else None,
+        "share": _r(float(valid.sum()) / float(m.sum())) if m.any() else None,
+    }
+
+
 def cell_metrics(evaluation) -> dict:
     """Everything the matrix prints for one ride (see the module docstring)."""
     t, E, tr, m, b = evaluation.t, evaluation.estimates, evaluation.truth, evaluation.mask, evaluation.baselines
@@ -196,6 +216,7 @@ def cell_metrics(evaluation) -> dict:
         },
         "roll_ratio_to_peer": _r(ours / peer) if ours is not None and peer else None,
         "roll_valid": roll_valid_stats(evaluation, evaluation.roll_tolerance_deg),
+        "torque_valid": torque_valid_stats(evaluation),
         "torque": {
             "rmse_nm": _r(t_rmse),
             "peak_nm": _r(t_peak),
@@ -453,7 +474,7 @@ def cell_table(cells: Sequence[dict]) -> str:
     """One line per cell: roll (ours/peer/ratio, UIHOSMO, kin, comp), torque, stiffness valid, targets."""
     head = (
         f"{'scenario':<16}{'variant':<12}{'roll':>6}{'peer':>6}{'r/p':>6}{'rV':>6}{'uio':>7}{'kin':>6}{'comp':>6}"
-        f"{'tau%pk':>7}{'tau/0':>6}{'uio%pk':>7}"
+        f"{'tau%pk':>7}{'tau/0':>6}{'tV':>6}{'uio%pk':>7}"
         f"  {'stiffness valid: mean|max|err| % (share 2nd half) Caf Cgf Car Cgr':<74}"
         "  missed"
     )
@@ -476,6 +497,7 @@ def cell_table(cells: Sequence[dict]) -> str:
             f"{_f(m['roll_ratio_to_peer'], 6)}{_f((m.get('roll_valid') or {}).get('max_err_deg'), 6)}"
             f"{_f(r['uihosmo'], 7, 1)}{_f(r['kinematic'], 6)}"
             f"{_f(r['complementary'], 6)}{_f(tq['pct_of_peak'], 7, 1)}{_f(tq['ratio_to_zero'], 6)}"
+            f"{_f((m.get('torque_valid') or {}).get('max_mean_err_nm'), 6, 1)}"
             f"{_f(tq.get('uihosmo_pct_of_peak'), 7, 1)}  "
             f"{' '.join(f'{x:>18}' for x in stiff):<74}  {', '.join(missed) or '-'}"
         )
@@ -485,7 +507,8 @@ def cell_table(cells: Sequence[dict]) -> str:
         " complementary;"
     )
     lines.append(
-        "tau%pk: rider torque RMSE in % of the ride's peak; tau/0: over the RMSE of an all-zero estimate; uio%pk:"
+        "tau%pk: rider torque RMSE in % of the ride's peak; tau/0: over the RMSE of an all-zero estimate; tV: largest"
+        " |error| [N m] of the torque's 0.2 s mean while EST_RiderTorque_Valid; uio%pk:"
         " the UIHOSMO on the sensors' torque RMSE in % of the peak (issue #16: the plausibility monitor's channel);"
         " stiffness:"
     )

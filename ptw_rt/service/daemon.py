@@ -61,8 +61,11 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 
 from ptw_rt.core.layout import (
+    E_C_ALPHA_FRONT,
+    E_C_GAMMA_REAR,
     E_MODE,
     E_REASONS,
     E_VALID,
@@ -361,6 +364,9 @@ class Daemon:
         self._saver: threading.Thread | None = None
         # the last sensor biases and steer zero known good (restored, or learned and saved): a save while the
         # attitude filter doubts its biases (an alarm) or before the zero is re-learned keeps them, never drops them
+        # the stiffness last published VALID in this run (copied by the loop each VALID cycle)
+        self._kept_stiffness = np.zeros(E_C_GAMMA_REAR + 1 - E_C_ALPHA_FRONT)
+        self._stiffness_kept = False
         self._kept_biases: tuple[float, ...] | None = None
         self._kept_steer_zero: tuple[float, float] | None = None
         self._warm_up()
@@ -519,15 +525,20 @@ class Daemon:
 
     def _stiffness_to_save(self):
         """(stiffness, sensor biases or None, steer zero or None) worth keeping, or None: the file is written only
-        once the tyres are learned (VALID), never with the prior as if it had been learned. Biases or a steer zero
-        not sound at this moment (the attitude monitor's alarm; not yet re-learned) are the last known good ones."""
-        if not int(self.estimates[E_VALID]) & (V_CORNERING | V_CAMBER):
-            return None  # nothing learned (or restored) yet: keep the previous file
+        once the tyres are learned (VALID), never with the prior as if it had been learned: the stiffness last
+        published VALID in this run (the tyres are never VALID at a stop, where SIGTERM comes: a stop there saved
+        nothing of a ride's learning). Biases or a steer zero not sound at this moment (the attitude monitor's
+        alarm; not yet re-learned) are the last known good ones."""
         est = self.runner.estimator
+        if int(self.estimates[E_VALID]) & (V_CORNERING | V_CAMBER):
+            self._kept_stiffness[:] = est.learned_stiffness()
+            self._stiffness_kept = True
+        if not self._stiffness_kept:
+            return None  # nothing learned (or restored) yet: keep the previous file
         biases, steer_zero = est.learned_sensor_biases(), est.learned_steer_zero()
         self._kept_biases = biases = biases if biases is not None else self._kept_biases
         self._kept_steer_zero = steer_zero = steer_zero if steer_zero is not None else self._kept_steer_zero
-        return [float(v) for v in est.learned_stiffness()], biases, steer_zero
+        return [float(v) for v in self._kept_stiffness], biases, steer_zero
 
     def _save_state(self, values, now: float) -> None:
         path = self.settings.runtime.state_file
@@ -722,6 +733,9 @@ class Daemon:
                     self.worst_cycle_us = us
                 if self.on_cycle is not None:
                     self.on_cycle(now, estimates)
+                if int(estimates[E_VALID]) & (V_CORNERING | V_CAMBER):  # what a stop (never VALID) will save
+                    np.copyto(self._kept_stiffness, estimates[E_C_ALPHA_FRONT : E_C_GAMMA_REAR + 1])
+                    self._stiffness_kept = True
 
                 # ---- housekeeping (cheap unless due)
                 if not self.ready.is_set():
