@@ -93,8 +93,26 @@ def test_validity(settings, design):
     assert not _step(b, roll_sd=tol / 2.9)[2] & lay.V_ROLL  # 3 sigma beyond the tolerance
     assert not _step(b, rejected=10.0)[2] & lay.V_ROLL
     assert not _step(b, run_time=1.0)[2] & lay.V_RIDER_TORQUE
+    # no tyre filter explains the data (a slide near the grip limit): the torque ran 15-43 N m off while VALID
+    slide = {"tyre_nis_fast": 2.0 * b.params[sup.P_MODEL_MAX_NIS_FAST]}
+    assert not _step(b, tyres=slide)[2] & lay.V_RIDER_TORQUE and _step(b)[2] & lay.V_RIDER_TORQUE
     assert b.outputs[sup.OUT_ROLL_SD] == pytest.approx(0.001)
     assert math.isfinite(b.outputs[sup.OUT_ROLL_SD])
+
+
+@pytest.mark.parametrize("reason", [lay.REASON_DECODE_ERRORS, lay.REASON_OUT_OF_RANGE, lay.REASON_COUNTER_JUMPS])
+def test_no_model_based_signal_is_valid_while_corrupt_input_is_held(settings, design, reason):
+    """Random payloads that passed every check put the torque at 41-49 N m (5 N m true) while VALID (random ride set
+    11, `sensor_faults` seed 6666); a node repeating one frame kept every bit on. While corrupt input is held, the
+    steer, roll rate and what the lateral filters build on it are not VALID; the roll keeps its own rule."""
+    b = sup.STAGE.alone(settings, design)
+    model_based = lay.V_STEER | lay.V_ROLL_RATE | lay.V_STEER_RATE | lay.V_RIDER_TORQUE | lay.V_LAT_VEL
+    assert _step(b)[2] & model_based == model_based
+    valid = _step(b, reasons=reason)[2]
+    assert not valid & (model_based | lay.V_FY_FRONT | lay.V_FY_REAR) and valid & lay.V_ROLL
+    dt, hold = b.params[sup.P_DT], b.params[sup.P_REASON_HOLD]
+    after = [_step(b)[2] & model_based for _ in range(int(round(hold / dt)) + 2)]
+    assert not any(after[:-3]) and after[-1] == model_based  # held as long as the reason is
 
 
 class _EvidenceCount:

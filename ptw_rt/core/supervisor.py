@@ -450,7 +450,9 @@ def supervisor_stage(
     if run and run_time >= prm[P_CONVERGE_TIME] and not corrupt:  # the observers have settled, on sound input
         if not steer_implausible:
             valid |= V_STEER_RATE
-        if not (implausible or steer_implausible):  # the diverse channels do not contradict it
+        # the diverse channels do not contradict it, and some tyre filter explains the data (near the grip limit
+        # the linear tyres do not: the torque ran 15-43 N m off in a slide before a fall, random set 9)
+        if not (implausible or steer_implausible) and lateral[lat.OUT_TYRE_NIS_FAST] <= prm[P_MODEL_MAX_NIS_FAST]:
             valid |= V_RIDER_TORQUE
         if not steer_implausible:  # the lateral filters run on the steer angle
             valid |= V_LAT_VEL
