@@ -260,6 +260,18 @@ def test_check_config_broken(tmp_path, capsys):
     assert "ptw-rt run" in capsys.readouterr().err
 
 
+def test_an_interface_python_can_does_not_have_is_a_config_error(tmp_path, capsys):
+    """A typo in runtime.bus.interface passed the check; on SIGHUP the bus was closed, the reopen raised, and the
+    daemon ended with exit 2, which systemd does not restart: now the reload is refused and the old bus kept."""
+    bad = tmp_path / "typo.yaml"
+    text = DEFAULT_CONFIG.read_text()
+    assert "interface: socketcan" in text
+    bad.write_text(text.replace("interface: socketcan", "interface: socketcann", 1))
+    assert cli_main(["run", "--check-config", "--config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "runtime.bus.interface 'socketcann' is not a python-can interface" in err and len(err.splitlines()) == 1
+
+
 def test_run_daemon_duration_on_virtual_bus(tmp_path):
     args = argparse.Namespace(
         config=DEFAULT_CONFIG,

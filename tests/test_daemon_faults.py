@@ -123,9 +123,11 @@ class FaultyBus:
         self.inner.send(msg)
         self.sent += 1
 
+    recv_error: Exception = can.CanOperationError("simulated: [Errno 100] Network is down")
+
     def recv(self, timeout=None):
         if self.recv_fault is not None and self.recv_fault():
-            raise can.CanOperationError("simulated: [Errno 100] Network is down")
+            raise self.recv_error
         return self.inner.recv(timeout)
 
     def shutdown(self) -> None:
@@ -229,6 +231,29 @@ def test_persistent_bus_off_ready_and_pings(monkeypatch, notify, tmp_path):
     assert daemon.health()["last_send_error"] == "CanOperationError: simulated: bus-off"
 
 
+@pytest.mark.parametrize("inline", [False, True])
+def test_a_drivers_unexpected_error_on_send_is_a_send_failure(inline, monkeypatch, notify, tmp_path):
+    """A RuntimeError from a driver's send ended the sender thread (nothing published again, the watchdog fed,
+    STATUS mode=VALID) or, sent from the loop, the loop itself with a traceback. It is one failed frame."""
+    fired = {"n": 0}
+
+    def once(_msg=None):
+        if not fired["n"] and time.monotonic() > start + 0.5:
+            fired["n"] = 1
+            raise RuntimeError("simulated: a driver's bug")
+
+    opened = _use_faulty_bus(monkeypatch, send_fault=lambda n: once)
+    daemon = _daemon(tmp_path, notify)
+    daemon.open_bus()
+    daemon._inline = inline
+    start = time.monotonic()
+    _run(daemon, 2.5)
+    assert fired["n"] == 1 and daemon.send_errors >= 1
+    assert opened[0].sent >= 0.9 * daemon.frames_out and daemon.frames_out >= 600  # still publishing after it
+    assert daemon.cycles >= 240
+    _assert_pinged_throughout(notify, 2.5)
+
+
 @pytest.mark.parametrize("block_s", [0.0015, 0.05])
 def test_blocking_send_never_blocks_the_loop(block_s, monkeypatch, notify, tmp_path):
     """A driver whose send blocks 1.5 ms (29 overruns in 3 s inside the loop) or 50 ms (~300): no overrun."""
@@ -248,7 +273,15 @@ def test_blocking_send_never_blocks_the_loop(block_s, monkeypatch, notify, tmp_p
 # ---------------------------------------------------------------------- receive failure, open failure
 
 
-def test_receive_failure_reopens_the_bus(monkeypatch, notify, tmp_path, ride_frames):
+@pytest.mark.parametrize(
+    "error",
+    [
+        can.CanOperationError("simulated: [Errno 100] Network is down"),
+        RuntimeError("simulated: a driver's bug"),  # killed the reader: never reopened, FAULT for good, bus=open
+    ],
+)
+def test_receive_failure_reopens_the_bus(error, monkeypatch, notify, tmp_path, ride_frames):
+    monkeypatch.setattr(FaultyBus, "recv_error", error)
     fail_at = time.monotonic() + 1.5
     fired = {"n": 0}
 

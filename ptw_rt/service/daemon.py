@@ -108,7 +108,9 @@ OVERRUN_DEGRADED_LIMIT = 2  # within the last OVERRUN_WINDOW_S (docs/daemon.md, 
 MAX_BIAS_SHARES = 10.0
 _BITRATE_INTERFACES = frozenset({"pcan", "kvaser", "ixxat", "vector", "slcan", "gs_usb", "nican", "canalystii"})
 _RX_QUEUE_MAX = 20000
-_SEND_ERRORS = (can.CanError, OSError, ValueError)  # ValueError: a bus closed under the sender
+# CanError, OSError, ValueError (a bus closed under the sender), and a driver's bug (a RuntimeError from send):
+# counted, the frame given up; it ended the sender thread (nothing published again, the watchdog fed) or the loop
+_SEND_ERRORS = (Exception,)
 
 
 class BusUnavailableError(UserFacingError):
@@ -154,8 +156,8 @@ class _Reader(threading.Thread):
         while self.running:
             try:
                 msg = recv(timeout=0.05)
-            except (can.CanError, OSError, ValueError) as exc:  # ValueError: bus closed under us
-                if self.running:
+            except Exception as exc:  # noqa: BLE001 - CanError, OSError, ValueError (closed under us), a driver's bug
+                if self.running:  # the loop reopens the bus: a dead reader left it FAULT for good, STATUS bus=open
                     self.failed = f"{type(exc).__name__}: {exc}"
                 return
             if msg is not None and not msg.is_error_frame and not msg.is_remote_frame:
@@ -396,6 +398,13 @@ class Daemon:
         cfg = self.settings.runtime.bus
         try:
             bus = _open_bus(cfg, self.filters)
+        except UserFacingError as exc:
+            if now is None:  # at start-up: a configuration problem, one line, exit 2
+                raise
+            exc = exc.__cause__ or exc  # while running: retried every second like a device that went away
+            self.last_open_error = f"{type(exc).__name__}: {exc}"
+            self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", now)
+            return False
         except (can.CanError, OSError, ValueError) as exc:
             self.last_open_error = f"{type(exc).__name__}: {exc}"
             if now is not None:
@@ -871,8 +880,20 @@ def _build(config: Path, design_file, dbc, settings: Settings) -> CycleRunner:
 
 
 def load_daemon_settings(config: str | Path, overrides: dict[str, Any] | None = None) -> Settings:
-    """Settings of the config file with command-line overrides of ``runtime`` applied."""
-    settings = load_settings(config)
+    """Settings of the config file with command-line overrides of ``runtime`` applied; a CAN interface python-can
+    does not have is refused here (a SIGHUP with a typo in it closed the bus and ended the daemon, exit 2, never
+    restarted by systemd)."""
+    settings = _with_overrides(load_settings(config), overrides)
+    interface = settings.runtime.bus.interface
+    if interface not in can.VALID_INTERFACES:
+        raise UserFacingError(
+            f"{config}: runtime.bus.interface {interface!r} is not a python-can interface "
+            f"({', '.join(sorted(can.VALID_INTERFACES))})"
+        )
+    return settings
+
+
+def _with_overrides(settings: Settings, overrides: dict[str, Any] | None) -> Settings:
     if not overrides:
         return settings
     runtime = settings.runtime
