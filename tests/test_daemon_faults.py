@@ -306,6 +306,39 @@ def test_receive_failure_reopens_the_bus(error, monkeypatch, notify, tmp_path, r
     _assert_pinged_throughout(notify, 4.0)
 
 
+def test_a_slow_reopen_runs_off_the_loop(monkeypatch, notify, tmp_path, ride_frames):
+    """python-can's slcan sleeps 2 s after opening (a replugged adapter): reopened from the loop, 200 cycles were
+    missed and the watchdog's pings stopped for 2.1 s, a kill under WatchdogSec=2. The reopen runs off the loop."""
+    fail_at = time.monotonic() + 1.0
+    fired = {"n": 0}
+
+    def recv_fault(n_opened):
+        def fault():
+            if n_opened == 0 and time.monotonic() >= fail_at and not fired["n"]:
+                fired["n"] = 1
+                return True
+            return False
+
+        return fault
+
+    opened = _use_faulty_bus(monkeypatch, recv_fault=recv_fault)
+    fast_open = daemon_mod._open_bus
+
+    def slow_open(cfg, filters):
+        if opened:
+            time.sleep(2.0)
+        return fast_open(cfg, filters)
+
+    monkeypatch.setattr(daemon_mod, "_open_bus", slow_open)
+    channel = _channel()
+    daemon = _daemon(tmp_path, notify, channel=channel)
+    _run(daemon, 5.0, Feeder(channel, ride_frames, duration=5.5))
+    assert fired["n"] == 1 and daemon.bus_reopens == 1 and len(opened) == 2
+    assert daemon.overruns <= MAX_OVERRUNS and daemon.cycles >= 480
+    _assert_pinged_throughout(notify, 5.0)
+    assert opened[1].sent >= 100  # publishing again once it opened
+
+
 def test_bus_open_failure_at_start_is_one_line(monkeypatch, notify, tmp_path):
     def refuse(cfg, filters):
         raise can.CanInitializationError("simulated: No such device")

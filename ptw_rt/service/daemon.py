@@ -164,6 +164,29 @@ class _Reader(threading.Thread):
                 append((clock(), msg.arbitration_id, bytes(msg.data), msg.is_extended_id))
 
 
+def _shutdown_quietly(bus: can.BusABC) -> None:
+    try:
+        bus.shutdown()
+    except Exception as exc:  # noqa: BLE001 - a dying driver may raise anything; closing must not
+        log.debug("bus shutdown: %s", exc)
+
+
+class _Opener(threading.Thread):
+    """Opens a bus off the loop (``Daemon._reopen``): ``bus`` once open, or the ``error`` that stopped it."""
+
+    def __init__(self, cfg: BusSettings, filters: list[dict]) -> None:
+        super().__init__(name="ptw-rt-can-open", daemon=True)
+        self.cfg, self.filters = cfg, filters
+        self.bus: can.BusABC | None = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self.bus = _open_bus(self.cfg, self.filters)
+        except Exception as exc:  # noqa: BLE001 - whatever the driver raised: reported by the loop, retried
+            self.error = exc
+
+
 class _Sender(threading.Thread):
     """Sends the loop's frames on ``daemon.bus`` (whatever bus is open at the time) so the loop never waits for it.
 
@@ -332,6 +355,7 @@ class Daemon:
         self._reloader: threading.Thread | None = None
         self._prepared: _Reload | None = None  # set by the reload thread, taken by the loop
         self._next_reopen = -math.inf
+        self._opener: _Opener | None = None
         # counters (read by tests, the health log and the status)
         self.cycles = 0
         self.overruns = 0  # missed cycles since start
@@ -393,29 +417,52 @@ class Daemon:
 
     # ------------------------------------------------------------------ bus
 
-    def _try_open(self, now: float | None = None) -> bool:
-        """Open the configured bus and start its reader; False (logged, rate-limited) when it cannot be opened."""
+    def _try_open(self) -> bool:
+        """Open the configured bus before the loop starts and start its reader; False when it cannot be opened
+        (a configuration problem, an interface python-can lacks: ``UserFacingError``, exit 2)."""
         cfg = self.settings.runtime.bus
         try:
             bus = _open_bus(cfg, self.filters)
-        except UserFacingError as exc:
-            if now is None:  # at start-up: a configuration problem, one line, exit 2
-                raise
-            exc = exc.__cause__ or exc  # while running: retried every second like a device that went away
-            self.last_open_error = f"{type(exc).__name__}: {exc}"
-            self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", now)
-            return False
         except (can.CanError, OSError, ValueError) as exc:
             self.last_open_error = f"{type(exc).__name__}: {exc}"
-            if now is not None:
-                self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", now)
             return False
+        self._install(bus, cfg)
+        return True
+
+    def _install(self, bus: can.BusABC, cfg: BusSettings) -> None:
         self.bus = bus
         self._inline = _never_blocks(bus)
         self._reader = _Reader(bus, self._rx)
         self._reader.start()
         log.info("CAN bus %s:%s open", cfg.interface, cfg.channel)
-        return True
+
+    def _reopen(self, now: float) -> None:
+        """While running, the bus is reopened off the loop, once a second until it opens: a driver's open may block
+        for seconds (python-can's slcan sleeps 2 s after opening a replugged adapter: from the loop, 200 missed
+        cycles and a 2.1 s gap in the watchdog's pings, a kill under WatchdogSec=2)."""
+        opener = self._opener
+        if opener is None:
+            if now >= self._next_reopen:
+                self._next_reopen = now + REOPEN_INTERVAL_S
+                self._opener = _Opener(self.settings.runtime.bus, self.filters)
+                self._opener.start()
+            return
+        if opener.is_alive():
+            return
+        self._opener = None
+        cfg = opener.cfg
+        if opener.bus is not None and cfg == self.settings.runtime.bus:
+            self._install(opener.bus, cfg)
+            self.bus_reopens += 1
+            return
+        if opener.bus is not None:  # opened with the settings of before a reload: not the bus wanted now
+            _shutdown_quietly(opener.bus)
+            self._next_reopen = now
+            return
+        exc = opener.error
+        exc = exc.__cause__ or exc if isinstance(exc, UserFacingError) else exc
+        self.last_open_error = f"{type(exc).__name__}: {exc}"
+        self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", now)
 
     def open_bus(self) -> None:
         """Open the bus before the loop starts; ``BusUnavailableError`` (one line, exit code 69) if impossible."""
@@ -434,10 +481,7 @@ class Daemon:
         if reader is not None:
             reader.running = False
         if self.bus is not None:
-            try:
-                self.bus.shutdown()
-            except Exception as exc:  # a dying driver may raise anything; closing must not
-                log.debug("bus shutdown: %s", exc)
+            _shutdown_quietly(self.bus)
         if wait and reader is not None and reader is not threading.current_thread():
             reader.join(timeout=0.5)
         self.bus = None
@@ -757,10 +801,8 @@ class Daemon:
                 if self._reader is not None and self._reader.failed:
                     self.rate_log.error("bus_lost", f"CAN bus lost ({self._reader.failed}); reopening", now)
                     self._close_bus()
-                if self.bus is None and now >= self._next_reopen:
-                    self._next_reopen = now + REOPEN_INTERVAL_S
-                    if self._try_open(now):
-                        self.bus_reopens += 1
+                if self.bus is None:
+                    self._reopen(now)
                 if now >= next_status:
                     next_status = now + STATUS_NOTIFY_INTERVAL_S
                     self.notifier.status(self._status_text())
@@ -794,6 +836,11 @@ class Daemon:
             self._saver.join(timeout=5.0)
         self._save_state(self._stiffness_to_save(), time.monotonic())
         self._close_bus(wait=True)
+        opener, self._opener = self._opener, None
+        if opener is not None:  # a reopen under way: its bus, if it comes, is closed, not left open
+            opener.join(timeout=2.0)
+            if opener.bus is not None:
+                _shutdown_quietly(opener.bus)
         self._health_log(time.monotonic())
         log.info("stopped after %d cycles", self.cycles)
 
