@@ -223,6 +223,10 @@ def test_reader_receives_sentences(reader_factory, thread_errors):
     stats = reader.stats()
     assert stats["parsed"] == 2 and stats["used"] == 2 and stats["garbage"] == 1
     assert stats["opens"] == 1 and stats["disconnects"] == 0 and stats["bytes"] > 0
+    assert reader.bad_lines == 2  # what the daemon counts as GPS decode errors: the checksum error and the garbage
+    # noise without a newline (megabytes of it were counted as no decode error at all)
+    pty.write(b"x" * 20_000)
+    assert wait_for(lambda: reader.bad_lines > 2)
     assert thread_errors == []
 
 

@@ -283,6 +283,12 @@ class SerialGnssReader:
         Kept across a disconnect: judge its age by the receive time, as for a CAN message."""
         return self._latest
 
+    @property
+    def bad_lines(self) -> int:
+        """Checksum errors, garbage lines and over-long runs without a newline: what the daemon counts as GPS
+        decode errors (the over-long ones were left out: megabytes of noise counted as none)."""
+        return self.parser.checksum_errors + self.parser.garbage + self._overlong
+
     def stats(self) -> dict[str, Any]:
         with self._lock:
             return {

@@ -497,14 +497,16 @@ class Daemon:
                 self.rate_log.error("gnss_lost", f"GNSS receiver {gnss.port} lost: {gnss.last_error}", now)
             else:
                 log.info("GNSS receiver %s connected", gnss.port)
-        bad = gnss.parser.checksum_errors + gnss.parser.garbage
+        bad = gnss.bad_lines
         if bad != self._gnss_bad:
             for _ in range(bad - self._gnss_bad):
                 runner.tracker.decode_error("GPS_Velocity")
             self._gnss_bad = bad
             p = gnss.parser
             self.rate_log.warn(
-                "gnss_bad", f"GNSS {gnss.port}: checksum errors {p.checksum_errors}, garbage lines {p.garbage}", now
+                "gnss_bad",
+                f"GNSS {gnss.port}: checksum errors {p.checksum_errors}, garbage lines {bad - p.checksum_errors}",
+                now,
             )
         latest = gnss.latest()
         if latest is None or latest[0] == self._gnss_taken:

@@ -183,7 +183,10 @@ class WatchdogGate:
 
     "Healthy" is for the daemon to define; ``ptw-rt run``'s: the cycle completed on time (docs/daemon.md), whatever
     the bus does. A missing sensor is a DEGRADED mode on the bus and a failing send a counted fault, not reasons to
-    restart; a loop that can no longer keep its period is.
+    restart; a loop that completes no cycle on time for ``max_unhealthy_s`` (hung in a cycle, or late at every
+    deadline) is. A loop merely slower than its period (15 ms cycles) resynchronises and meets every other
+    deadline: it is published DEGRADED by the overrun rule and keeps its pings, since a restart would not make the
+    machine faster (docs/daemon.md).
     """
 
     def __init__(
