@@ -306,6 +306,21 @@ def test_receive_failure_reopens_the_bus(error, monkeypatch, notify, tmp_path, r
     _assert_pinged_throughout(notify, 4.0)
 
 
+def test_a_reload_keeps_what_only_a_start_can_change(tmp_path, caplog):
+    """runtime.gps and runtime.realtime were reported reloaded and not applied: now kept, and said."""
+    daemon = _daemon(tmp_path)
+    new = dataclasses.replace(
+        daemon.settings,
+        runtime=dataclasses.replace(
+            daemon.settings.runtime, gps=dataclasses.replace(daemon.settings.runtime.gps, source="serial")
+        ),
+    )
+    with caplog.at_level("WARNING", logger="ptw_rt.daemon"):
+        daemon._apply_reload(daemon_mod._Reload(settings=new), time.monotonic())
+    assert daemon.settings.runtime.gps.source == "can" and daemon.reloads == 1
+    assert any("runtime.gps changed: it takes effect at the next start" in r.getMessage() for r in caplog.records)
+
+
 def test_a_slow_reopen_runs_off_the_loop(monkeypatch, notify, tmp_path, ride_frames):
     """python-can's slcan sleeps 2 s after opening (a replugged adapter): reopened from the loop, 200 cycles were
     missed and the watchdog's pings stopped for 2.1 s, a kill under WatchdogSec=2. The reopen runs off the loop."""

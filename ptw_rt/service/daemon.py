@@ -98,6 +98,7 @@ __all__ = ["BusUnavailableError", "Daemon", "OverrunRule", "load_daemon_settings
 log = logging.getLogger("ptw_rt.daemon")
 
 REOPEN_INTERVAL_S = 1.0
+RESTART_ONLY = ("gps", "realtime")  # runtime sections a SIGHUP cannot put in force (the next start does)
 SEND_FAILURE_HOLD_S = 1.0
 STATUS_NOTIFY_INTERVAL_S = 1.0
 SEND_TIMEOUT_S = 0.005  # one bus.send may wait this long for room in the transmit queue (in the sender thread)
@@ -632,7 +633,11 @@ class Daemon:
         t0 = time.perf_counter()
         try:
             settings = load_daemon_settings(self.config_path, self._overrides)
-            same_model = settings.config_hash == self.settings.config_hash and settings.sensors == self.settings.sensors
+            same_model = (
+                settings.config_hash == self.settings.config_hash
+                and settings.sensors == self.settings.sensors
+                and settings.runtime.stale_after_periods == self.settings.runtime.stale_after_periods  # the tracker's
+            )
             runner = None
             if not same_model:
                 runner = _build(self.config_path, self.design_file, self.dbc, settings)
@@ -658,6 +663,17 @@ class Daemon:
             return self.runner
         settings, runner = prepared.settings, prepared.runner
         assert settings is not None
+        # what a running daemon cannot change (the GNSS reader's port and source, the scheduling it was started
+        # with): kept, and said, rather than reported reloaded and silently not in force
+        at_start = [k for k in RESTART_ONLY if getattr(settings.runtime, k) != getattr(self.settings.runtime, k)]
+        if at_start:
+            kept = {k: getattr(self.settings.runtime, k) for k in at_start}
+            settings = dataclasses.replace(settings, runtime=dataclasses.replace(settings.runtime, **kept))
+            log.warning(
+                "SIGHUP: runtime.%s changed: it takes effect at the next start (systemctl restart ptw-rt); the "
+                "running one is kept",
+                ", runtime.".join(at_start),
+            )
         if settings.runtime.bus != self.settings.runtime.bus:
             log.warning("SIGHUP: runtime.bus changed; the bus is reopened with the new settings")
             self._close_bus()
