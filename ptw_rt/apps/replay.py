@@ -325,6 +325,15 @@ def replay_log(
         blocks.close()
     if stats.malformed:
         log.warning("%s", stats.problems_line())
+    if stats.frames >= DENSE_LOG_FRAMES and cycles * DENSE_LOG_FRAMES_PER_CYCLE < stats.frames:
+        # all stamps equal, or a whole ride's frames within a millisecond: every frame lands in one cycle or a few
+        log.warning(
+            "%s: %d frames in %d cycles (%.6f s of time stamps): not the time stamps of a recorded bus",
+            in_path,
+            stats.frames,
+            cycles,
+            duration,
+        )
     inputs = runner.tracker.summary()
     read = {name: n - frames_before.get(name, 0) for name, n in _input_frames(runner).items()}
     if not any(read.values()):
@@ -554,6 +563,10 @@ def replay_job(
 # can cost: 10^8 s took 700 MB of output in 20 s and would have run for years. Below the minimum every frame of a
 # 100 Hz log would start a segment (one stderr line each).
 MAX_GAP_RANGE_S = (0.1, 60.0)
+# a log of at least this many frames with more than this many per cycle on average (the contract's inputs send 3.1 a
+# cycle; a busy vehicle bus ~20) is said to have no usable time stamps
+DENSE_LOG_FRAMES = 100
+DENSE_LOG_FRAMES_PER_CYCLE = 200
 
 
 def _max_gap(args) -> float:

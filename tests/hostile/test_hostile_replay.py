@@ -262,3 +262,14 @@ def test_a_log_of_no_frame_the_estimator_reads_is_refused_not_replayed_as_all_fa
         _replay(path, tmp_path, runner)
     assert info.value.exit_code == 2 and "\n" not in str(info.value)
     assert not (tmp_path / "another_bus.out.log").exists()
+
+
+def test_a_log_whose_time_stamps_are_all_equal_is_said(tmp_path, runner, caplog):
+    """Every frame in one cycle, exit 0 and nothing said: now one warning line (the replay itself is bounded)."""
+    path = tmp_path / "one_instant.log"
+    path.write_text("\n".join(f"({LOG_EPOCH:017.6f}) {line.split(') ', 1)[1]}" for line in clean_log_lines()) + "\n")
+    with caplog.at_level(logging.WARNING):
+        s, _ = _replay(path, tmp_path, runner)
+    assert s["cycles"] <= 2 and s["frames_in"] == 600
+    (line,) = _lines(caplog, "not the time stamps of a recorded bus")
+    assert "600 frames in" in line
