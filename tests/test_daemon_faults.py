@@ -146,6 +146,22 @@ def _use_faulty_bus(monkeypatch, **faults) -> list[FaultyBus]:
     return opened
 
 
+def _first_bus_fails_once(at: float):
+    """({"n": times fired}, recv_fault factory): the first bus opened raises once in recv at monotonic time `at`."""
+    fired = {"n": 0}
+
+    def recv_fault(n_opened):
+        def fault():
+            if n_opened == 0 and time.monotonic() >= at and not fired["n"]:
+                fired["n"] = 1
+                return True
+            return False
+
+        return fault
+
+    return fired, recv_fault
+
+
 def _daemon(tmp_path, notify=None, channel=None, **runtime) -> Daemon:
     s = _settings(channel or _channel(), tmp_path)
     if runtime:
@@ -282,18 +298,7 @@ def test_blocking_send_never_blocks_the_loop(block_s, monkeypatch, notify, tmp_p
 )
 def test_receive_failure_reopens_the_bus(error, monkeypatch, notify, tmp_path, ride_frames):
     monkeypatch.setattr(FaultyBus, "recv_error", error)
-    fail_at = time.monotonic() + 1.5
-    fired = {"n": 0}
-
-    def recv_fault(n_opened):
-        def fault():
-            if n_opened == 0 and time.monotonic() >= fail_at and not fired["n"]:
-                fired["n"] = 1
-                return True
-            return False
-
-        return fault
-
+    fired, recv_fault = _first_bus_fails_once(at=time.monotonic() + 1.5)
     opened = _use_faulty_bus(monkeypatch, recv_fault=recv_fault)
     channel = _channel()
     daemon = _daemon(tmp_path, notify, channel=channel)
@@ -324,18 +329,7 @@ def test_a_reload_keeps_what_only_a_start_can_change(tmp_path, caplog):
 def test_a_slow_reopen_runs_off_the_loop(monkeypatch, notify, tmp_path, ride_frames):
     """python-can's slcan sleeps 2 s after opening (a replugged adapter): reopened from the loop, 200 cycles were
     missed and the watchdog's pings stopped for 2.1 s, a kill under WatchdogSec=2. The reopen runs off the loop."""
-    fail_at = time.monotonic() + 1.0
-    fired = {"n": 0}
-
-    def recv_fault(n_opened):
-        def fault():
-            if n_opened == 0 and time.monotonic() >= fail_at and not fired["n"]:
-                fired["n"] = 1
-                return True
-            return False
-
-        return fault
-
+    fired, recv_fault = _first_bus_fails_once(at=time.monotonic() + 1.0)
     opened = _use_faulty_bus(monkeypatch, recv_fault=recv_fault)
     fast_open = daemon_mod._open_bus
 
