@@ -389,11 +389,11 @@ class Daemon:
         self._gnss_connected = False
         self._gnss_bad = 0  # checksum errors + garbage lines seen so far
         self._saver: threading.Thread | None = None
-        # the last sensor biases and steer zero known good (restored, or learned and saved): a save while the
-        # attitude filter doubts its biases (an alarm) or before the zero is re-learned keeps them, never drops them
-        # the stiffness last published VALID in this run (copied by the loop each VALID cycle)
+        # the stiffness last published VALID in this run (copied by the loop each VALID cycle: a stop saves it)
         self._kept_stiffness = np.zeros(E_C_GAMMA_REAR + 1 - E_C_ALPHA_FRONT)
         self._stiffness_kept = False
+        # the last sensor biases and steer zero known good (restored, or learned and saved): a save while the
+        # attitude filter doubts its biases (an alarm) or before the zero is re-learned keeps them, never drops them
         self._kept_biases: tuple[float, ...] | None = None
         self._kept_steer_zero: tuple[float, float] | None = None
         self._warm_up()
@@ -461,7 +461,8 @@ class Daemon:
             self._next_reopen = now
             return
         exc = opener.error
-        exc = exc.__cause__ or exc if isinstance(exc, UserFacingError) else exc
+        if isinstance(exc, UserFacingError):  # the driver would not load: its cause says why
+            exc = exc.__cause__ or exc
         self.last_open_error = f"{type(exc).__name__}: {exc}"
         self.rate_log.warn("bus_open", f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}", now)
 
