@@ -2,8 +2,9 @@
 
 The base is `NUMBA_CACHE_DIR` if set (the systemd unit sets it under `CacheDirectory=`), else
 `$XDG_CACHE_HOME/ptw-rt/numba` (`~/.cache/ptw-rt/numba`). Below it, `src-<hash>` holds the cache of one
-version of `ptw_rt/core`, `edge`, `io` and `sim` (the packages with jitted code); directories of other versions
-that nobody touched for an hour are removed, so upgrades do not accumulate caches.
+version of `ptw_rt/core`, `edge`, `io` and `sim` (the packages with jitted code), marked as ours; marked
+directories of other versions that nobody touched for an hour are removed, so upgrades do not accumulate caches
+(nothing else is ever removed).
 Nothing here may raise: a cache problem costs one slow start, never a failed one.
 """
 
@@ -11,12 +12,17 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import time
 from pathlib import Path
 
 JITTED_PACKAGES = ("core", "edge", "io", "sim")
 _PREFIX = "src-"
+_KEY = re.compile(r"src-[0-9a-f]{16}")
+# written into each keyed directory: only directories that hold it are ever removed (a NUMBA_CACHE_DIR of /tmp, or
+# one naming a directory of its own called src-something, had every src-* directory beside it removed)
+_MARKER = ".ptw-rt-numba-cache"
 _STALE_AFTER_S = 3600.0
 _ENV = "NUMBA_CACHE_DIR"
 
@@ -40,10 +46,15 @@ def _default_base() -> Path:
 def key_numba_cache_to_source() -> None:
     try:
         base = Path(os.environ.get(_ENV) or _default_base())
-        if base.name.startswith(_PREFIX):  # keyed already (a child process inheriting the environment)
+        if _KEY.fullmatch(base.name) and (base / _MARKER).is_file():  # keyed already (a child process)
             base = base.parent
         key = _PREFIX + source_key()
         os.environ[_ENV] = str(base / key)
+        try:
+            (base / key).mkdir(parents=True, exist_ok=True)
+            (base / key / _MARKER).touch()
+        except OSError:
+            return  # numba finds its own place; nothing of ours to tidy
         _remove_other_versions(base, key)
     except Exception:  # noqa: BLE001 - never fail an import over a cache
         pass
@@ -54,12 +65,13 @@ def _remove_other_versions(base: Path, keep: str) -> None:
         return
     now = time.time()
     for entry in base.iterdir():
-        if entry.name.startswith(_PREFIX) and entry.name != keep and entry.is_dir():
-            try:
-                if now - entry.stat().st_mtime > _STALE_AFTER_S:
-                    shutil.rmtree(entry, ignore_errors=True)
-            except OSError:
-                pass
+        if not _KEY.fullmatch(entry.name) or entry.name == keep or entry.is_symlink() or not entry.is_dir():
+            continue
+        try:
+            if (entry / _MARKER).is_file() and now - entry.stat().st_mtime > _STALE_AFTER_S:
+                shutil.rmtree(entry, ignore_errors=True)
+        except OSError:
+            pass
 
 
 def is_cold(module: str = "estimator") -> bool:

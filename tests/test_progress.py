@@ -66,3 +66,25 @@ def test_the_running_cache_is_warm_after_a_step():
     build_runner(DEFAULT_CONFIG).cycle(0.0)
     if os.environ.get("NUMBA_DISABLE_JIT", "0") in ("", "0"):
         assert not _numba_cache.is_cold()
+
+
+def test_only_our_own_cache_directories_are_ever_removed(tmp_path, monkeypatch):
+    """A NUMBA_CACHE_DIR of /tmp (or one naming a directory called src-something) had every src-* directory beside
+    it older than an hour removed at import. Only directories we keyed and marked are."""
+    import os
+    import time
+
+    old = time.time() - 2 * 3600
+    ours, theirs, named = tmp_path / "src-0123456789abcdef", tmp_path / "src-0123456789abcdee", tmp_path / "src-x"
+    for d in (ours, theirs, named):
+        d.mkdir()
+    (ours / _numba_cache._MARKER).touch()
+    for d in (ours, theirs, named):
+        os.utime(d, (old, old))
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(named))  # a user's directory that happens to be called src-x
+    _numba_cache.key_numba_cache_to_source()
+    assert named.is_dir() and theirs.is_dir()  # not ours: kept
+    assert os.environ["NUMBA_CACHE_DIR"].startswith(str(named))  # keyed below it, not beside it
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    _numba_cache.key_numba_cache_to_source()
+    assert not ours.exists() and theirs.is_dir() and named.is_dir()  # ours, stale: removed; nothing else
