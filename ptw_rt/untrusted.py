@@ -17,6 +17,7 @@ raised as the reader's own error class (``error=``), which the CLI prints with e
 
 from __future__ import annotations
 
+import errno
 import os
 import reprlib
 import stat
@@ -54,6 +55,18 @@ def file_kind(mode: int) -> str:
         if test(mode):
             return name
     return "not a regular file"
+
+
+def check_replaceable(path: str | Path) -> None:
+    """An output written by renaming a new file over ``path`` must find a regular file, a symlink (the link is
+    replaced, never what it points to) or nothing there: a rename replaces a device, a FIFO or an empty directory
+    with a file (as root, ``design --out /dev/full`` turned the device into a regular file). Else ``OSError``."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+        raise OSError(errno.EEXIST, f"exists and is {file_kind(mode)}, not a file to replace", str(path))
 
 
 def _size(n: int) -> str:

@@ -231,3 +231,19 @@ def test_the_steer_zero_round_trips_is_optional_and_bounded(tmp_path):
         assert state is None and key in reason, (key, bad, reason)
     with pytest.raises(ValueError):
         save_state(path, [1.0, 2.0, 3.0, 4.0], "h", steer_zero=(512.0, float("nan")))
+
+
+def test_a_save_never_replaces_what_is_not_a_file(tmp_path):
+    """A state path that is a FIFO or a device was refused when read and replaced by a regular file when saved (the
+    rename of the new file over it; as root, a device node). Saving there is an OSError, the node left alone."""
+    import stat
+
+    fifo = tmp_path / "state.json"
+    os.mkfifo(fifo)
+    with pytest.raises(OSError, match="FIFO"):
+        save_state(fifo, STIFF, HASH)
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and [p.name for p in tmp_path.iterdir()] == ["state.json"]
+    link = tmp_path / "link.json"
+    link.symlink_to(tmp_path / "elsewhere.json")  # a symlink is replaced, never what it points to
+    save_state(link, STIFF, HASH)
+    assert not link.is_symlink() and not (tmp_path / "elsewhere.json").exists()

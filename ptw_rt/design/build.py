@@ -14,11 +14,12 @@ from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
 from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design_for
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
 from ptw_rt.design.uihosmo import NEVER_DETECTABLE, design_grid
-from ptw_rt.errors import UserFacingError
+from ptw_rt.errors import UserFacingError, output_error
 from ptw_rt.model.sharp import lpv_model
 from ptw_rt.output import emit
 from ptw_rt.paths import DEFAULT_DESIGN
 from ptw_rt.settings import Settings, load_settings
+from ptw_rt.untrusted import check_replaceable
 
 # How many speeds to test inside each grid interval for the interpolated gains.
 BETWEEN_GRID_SAMPLES = 7
@@ -283,13 +284,22 @@ def run_design(args) -> int:
         emit(result, args.json, f"Design check of {source}\n" + format_check(result))
         return 0 if result["stable"] else 1
     out = args.out or DEFAULT_DESIGN
+    if Path(out).resolve() == Path(args.config).resolve():
+        raise UserFacingError(f"--out {out} is the configuration it is designed from: name the design file")
+    try:
+        check_replaceable(out)  # before the minutes of designing
+    except OSError as exc:
+        raise output_error(out, exc) from None
     data, _ = make_design(settings)
     result = check_design(data)
     if not result["stable"]:
         print(format_check(result), file=sys.stderr)
         print("ptw-rt design: the design is not stable; nothing written", file=sys.stderr)
         return 1
-    data.save(out)
+    try:
+        data.save(out)
+    except OSError as exc:  # a directory, a device, a full disk: one line, exit 74
+        raise output_error(out, exc) from None
     print(
         f"wrote {out} ({len(data.grid)} grid speeds {data.grid[0] * 3.6:.1f}-{data.grid[-1] * 3.6:.1f} km/h, "
         f"config hash {data.config_hash[:12]})"

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.errors import UserFacingError
-from ptw_rt.untrusted import excerpt, open_binary, short_text
+from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, short_text
 
 FORMAT_VERSION = 9
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
@@ -105,13 +105,20 @@ class DesignData:
     us_Ramp21: np.ndarray  # (G, n2, n1)
 
     def save(self, path: str | Path) -> None:
+        """Written to a temporary file renamed over ``path`` (a regular file, or none): ``OSError`` if it cannot be,
+        nothing left behind."""
         path = Path(path)
+        check_replaceable(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
         tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        tmp.replace(path)
+        try:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+            tmp.replace(path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
 
 # Bounds of what a design file may hold, checked from the zip directory and each member's .npy header BEFORE

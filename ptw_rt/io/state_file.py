@@ -49,7 +49,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from ptw_rt.untrusted import check_nesting, decode_utf8, excerpt, read_bounded
+from ptw_rt.untrusted import check_nesting, check_replaceable, decode_utf8, excerpt, read_bounded
 
 __all__ = [
     "STATE_FORMAT",
@@ -233,6 +233,7 @@ def save_state(
         doc["extra"] = dict(extra)
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
 
+    check_replaceable(path)  # a state file that is a device node was refused when read and replaced when saved
     directory = path.parent
     directory.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=_TMP_SUFFIX)

@@ -72,6 +72,8 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
         # outputs that cannot be written: one line, exit 74 like replay's (a file where a directory is asked for)
         (["simulate", "--scenario", "dlc_50", "--duration", "2", "--out", log], 74),
         (["report", "--scenario", "dlc_50", "--out", log], 74),
+        # a rename over a directory (or, as root, a device or a FIFO) replaced it: refused before designing
+        (["design", "--out", out], 74),
     ]
     results = run_many([args for args, _ in commands], cwd=tmp_path, timeout=TIMEOUT)
     expected = {tuple(map(str, args)): rc for args, rc in commands}
