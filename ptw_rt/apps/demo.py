@@ -220,8 +220,8 @@ def run_demo(args) -> int:
 
     speed = getattr(args, "speed", None)
     speed = 1.0 if speed is None else float(speed)
-    if not (math.isfinite(speed) and speed > 0):
-        raise UserFacingError(f"--speed must be a positive number, got {speed}")
+    if not (math.isfinite(speed) and 0.1 <= speed <= 1000.0):  # 1e308 or 1e-300 was a traceback
+        raise UserFacingError(f"--speed must be 0.1-1000 (1 = real time), got {speed}")
     config = Path(getattr(args, "config", None) or DEFAULT_CONFIG)
     out = Path(getattr(args, "out", None) or "out/demo")
     scenario = get_scenario(args.scenario)

@@ -273,3 +273,14 @@ def test_a_log_whose_time_stamps_are_all_equal_is_said(tmp_path, runner, caplog)
     assert s["cycles"] <= 2 and s["frames_in"] == 600
     (line,) = _lines(caplog, "not the time stamps of a recorded bus")
     assert "600 frames in" in line
+
+
+def test_an_output_that_is_a_fifo_is_refused_not_waited_on(hostile_logs, tmp_path):
+    """Opening a FIFO for writing waits for a reader: replay hung with nothing said. One line, exit 74."""
+    import os
+
+    fifo = tmp_path / "out.log"
+    os.mkfifo(fifo)
+    with pytest.raises(ReplayOutputError, match="FIFO") as info:
+        run_replay(_args([hostile_logs["gap_3s"]], fifo))
+    assert info.value.exit_code == EXIT_OUTPUT
