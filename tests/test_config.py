@@ -71,6 +71,7 @@ def test_default_config_loads(settings):
         ({"estimator__roll_fusion_time_constant": 1e-300}, "roll_fusion_time_constant: must be >= 0.01"),
         ({"estimator__min_valid_speed_kmh": 200}, "above the design grid"),
         ({"sensors": {"steer_counts_per_rev": 1}}, "steer_counts_per_rev: must be >= 64"),
+        ({"vehicle__front_tyre__cornering_stiffness": 1e-300}, "cornering_stiffness: must be >= 10"),
         ({"sensors": {"steer_counts_per_rev": 256}}, "steer_zero_count (512.0) must be below steer_counts_per_rev"),
     ],
 )

@@ -16,10 +16,11 @@ from typing import Any
 
 from ptw_rt.schema import ConfigError, Number, Section, Text, read_yaml, validate
 
-POSITIVE_MASS = Number("kg", gt=0)
-INERTIA = Number("kg m^2", gt=0)
+POSITIVE_MASS = Number("kg", gt=0, le=2000)
+INERTIA = Number("kg m^2", ge=1e-4, le=1e4)
 LENGTH = Number("m", gt=0, lt=5)
-STIFFNESS = Number("N/rad", gt=0)
+# a tyre of 1e-300 N/rad designed, and every ride ran DEGRADED with nothing said: engineering ranges
+STIFFNESS = Number("N/rad", ge=10, le=1e6)
 
 VEHICLE_SCHEMA = Section(
     {
@@ -48,26 +49,26 @@ VEHICLE_SCHEMA = Section(
             {
                 "caster_deg": Number("deg", ge=0, lt=60),
                 "trail": Number("m", ge=0, lt=0.5),
-                "damping": Number("N m s/rad", ge=0),
+                "damping": Number("N m s/rad", ge=0, le=1000),
             }
         ),
         "front_wheel": Section({"spin_inertia": INERTIA, "radius": Number("m", gt=0.05, lt=1.0)}),
         "rear_wheel": Section({"spin_inertia": INERTIA, "radius": Number("m", gt=0.05, lt=1.0)}),
-        "front_vertical_load": Number("N", gt=0),
+        "front_vertical_load": Number("N", gt=0, le=20000),
         "front_contact_forward": LENGTH,
         "rear_contact_behind": LENGTH,
         "front_tyre": Section(
             {
                 "cornering_stiffness": STIFFNESS,
                 "camber_stiffness": STIFFNESS,
-                "relaxation_length": Number("m", gt=0, lt=2),
+                "relaxation_length": Number("m", ge=0.001, lt=2),
             }
         ),
         "rear_tyre": Section(
             {
                 "cornering_stiffness": STIFFNESS,
                 "camber_stiffness": STIFFNESS,
-                "relaxation_length": Number("m", gt=0, lt=2),
+                "relaxation_length": Number("m", ge=0.001, lt=2),
             }
         ),
     }
