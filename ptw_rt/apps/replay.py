@@ -490,6 +490,8 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
         if args.csv is not None and args.csv.is_dir():
             raise ReplayOutputError(f"--csv {args.csv} is a directory; with one input log --csv names a file")
         detect_format(files[0][0])  # not a CAN log, empty: one line now, before the estimator is compiled
+        if args.csv is not None and args.csv.resolve() == args.out.resolve():  # one would overwrite the other
+            raise UserFacingError(f"--out and --csv name the same file {args.out}")
         jobs = [(files[0][0], args.out, args.csv)]
     else:
         if args.out.exists() and not args.out.is_dir():
@@ -499,6 +501,8 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
         dup = _repeated(str(rel) for _, rel in files)  # counted once each: 200 000 listed logs took minutes
         if dup:
             raise UserFacingError(f"several input logs are named {', '.join(dup)}: their outputs would collide")
+        if args.csv is not None and args.csv.resolve() == args.out.resolve():
+            raise UserFacingError(f"--out and --csv name the same directory {args.out}: a CSV log's outputs collide")
         dup = _repeated(str(rel.with_suffix("")) for _, rel in files)
         if dup and args.csv is not None:
             raise UserFacingError(f"several input logs are named {', '.join(dup)}.*: their --csv outputs would collide")

@@ -75,6 +75,7 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
         # a rename over a directory (or, as root, a device or a FIFO) replaced it: refused before designing
         (["design", "--out", out], 74),
         (["demo", "--speed", "1e308", "--out", out / "demo"], 2),  # was a traceback
+        (["replay", log, "--out", out / "same.log", "--csv", out / "same.log"], 2),  # one overwrote the other
     ]
     results = run_many([args for args, _ in commands], cwd=tmp_path, timeout=TIMEOUT)
     expected = {tuple(map(str, args)): rc for args, rc in commands}
