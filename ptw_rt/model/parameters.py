@@ -61,14 +61,14 @@ VEHICLE_SCHEMA = Section(
             {
                 "cornering_stiffness": STIFFNESS,
                 "camber_stiffness": STIFFNESS,
-                "relaxation_length": Number("m", ge=0.001, lt=2),
+                "relaxation_length": Number("m", gt=0, lt=2),
             }
         ),
         "rear_tyre": Section(
             {
                 "cornering_stiffness": STIFFNESS,
                 "camber_stiffness": STIFFNESS,
-                "relaxation_length": Number("m", ge=0.001, lt=2),
+                "relaxation_length": Number("m", gt=0, lt=2),
             }
         ),
     }
