@@ -586,12 +586,9 @@ class Daemon:
         published VALID in this run (the tyres are never VALID at a stop, where SIGTERM comes: a stop there saved
         nothing of a ride's learning). Biases or a steer zero not sound at this moment (the attitude monitor's
         alarm; not yet re-learned) are the last known good ones."""
-        est = self.runner.estimator
-        if int(self.estimates[E_VALID]) & (V_CORNERING | V_CAMBER):
-            self._kept_stiffness[:] = est.learned_stiffness()
-            self._stiffness_kept = True
-        if not self._stiffness_kept:
+        if not self._stiffness_kept:  # the loop keeps it, each cycle the tyres are VALID
             return None  # nothing learned (or restored) yet: keep the previous file
+        est = self.runner.estimator
         biases, steer_zero = est.learned_sensor_biases(), est.learned_steer_zero()
         self._kept_biases = biases = biases if biases is not None else self._kept_biases
         self._kept_steer_zero = steer_zero = steer_zero if steer_zero is not None else self._kept_steer_zero
@@ -683,6 +680,8 @@ class Daemon:
         if runner is not None:
             if settings.config_hash == self.settings.config_hash:
                 runner.estimator.restore_stiffness(old.estimator.learned_stiffness())
+            else:  # another vehicle or tuning: what the old one learned is not this one's to save
+                self._stiffness_kept = False
             # the wire goes on: output counters and the 10 Hz phase continue; so do the inputs when they can
             runner.encoder, runner.cycles = old.encoder, old.cycles
             if settings.runtime.stale_after_periods == self.settings.runtime.stale_after_periods:
