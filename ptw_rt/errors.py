@@ -34,6 +34,6 @@ class OutputError(UserFacingError):
     exit_code = EXIT_OUTPUT
 
 
-def output_error(path, exc: OSError) -> OutputError:
-    """The one line for an OSError writing ``path``."""
-    return OutputError(f"cannot write {path}: {exc.strerror or exc}")
+def output_error(path, exc: OSError, kind: type[OutputError] = OutputError) -> OutputError:
+    """The one line for an OSError writing ``path``, as ``kind`` (an OutputError)."""
+    return kind(f"cannot write {path}: {exc.strerror or exc}")

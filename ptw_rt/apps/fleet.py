@@ -112,7 +112,7 @@ def _dask_client(address: str, workers: int):
             f"--dask {address}: no Dask scheduler answered within {DASK_CONNECT_TIMEOUT_S + 5.0:g} s (a server that "
             "accepts and says nothing)"
         )
-    if isinstance(exc, ValueError) and not isinstance(exc, MemoryError):  # an address dask cannot parse
+    if isinstance(exc, ValueError):  # an address dask cannot parse
         raise UserFacingError(f"--dask {address}: not a Dask scheduler address ({exc}); e.g. tcp://host:8786") from None
     if isinstance(exc, (OSError, TimeoutError)):
         raise UserFacingError(f"--dask {address}: cannot reach the Dask scheduler ({exc})") from None

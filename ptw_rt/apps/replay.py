@@ -163,7 +163,7 @@ class ReplayOutputError(OutputError):
 
 
 def _output_error(path: Path | str, exc: OSError) -> ReplayOutputError:
-    return ReplayOutputError(str(output_error(path, exc)))
+    return output_error(path, exc, ReplayOutputError)
 
 
 def _prepare_output(path: Path, what: str) -> None:
@@ -229,7 +229,7 @@ def replay_log(
     in_path, out_log = Path(in_path), Path(out_log)
     wall0 = time.perf_counter()
     runner = runner or build_runner(config, design_file)
-    frames_before = _input_frames(runner)  # a runner given by the caller may have replayed other logs
+    frames_before = _input_frames(runner.tracker.summary())  # a runner given by the caller may have replayed others
     try:
         blocks, stats = open_log_arrays(in_path)
         # reported below, one line each, with what the replay did (bridged, or a new segment)
@@ -338,7 +338,7 @@ def replay_log(
             duration,
         )
     inputs = runner.tracker.summary()
-    read = {name: n - frames_before.get(name, 0) for name, n in _input_frames(runner).items()}
+    read = {name: n - frames_before.get(name, 0) for name, n in _input_frames(inputs).items()}
     if not any(read.values()):
         # a log of another bus (29-bit frames, other ids): every cycle FAULT and exit 0 said nothing was wrong
         for path in (out_log, csv_path):
@@ -382,9 +382,9 @@ def replay_log(
     }
 
 
-def _input_frames(runner: CycleRunner) -> dict[str, int]:
-    """Frames of each input the estimator reads, taken so far by the runner's input tracker."""
-    return {name: v["frames"] for name, v in runner.tracker.summary().items() if isinstance(v, dict)}
+def _input_frames(inputs: dict[str, Any]) -> dict[str, int]:
+    """Frames of each input the estimator reads, from an input tracker's summary (its other keys are counters)."""
+    return {name: v["frames"] for name, v in inputs.items() if isinstance(v, dict)}
 
 
 def _final_tyres(estimates: np.ndarray) -> dict[str, Any]:
@@ -484,14 +484,14 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
     if not inputs:
         raise UserFacingError("no input log: give logs, directories or --list FILE")
     files, any_dir = _collect_logs(inputs, exclude=args.out, several=len(inputs) > 1 or list_file is not None)
+    if args.csv is not None and args.csv.resolve() == args.out.resolve():  # one would overwrite the other
+        raise UserFacingError(f"--out and --csv name the same path {args.out}")
     if len(files) == 1 and not any_dir and list_file is None:
         if args.out.is_dir():
             raise ReplayOutputError(f"--out {args.out} is a directory; with one input log --out names the output file")
         if args.csv is not None and args.csv.is_dir():
             raise ReplayOutputError(f"--csv {args.csv} is a directory; with one input log --csv names a file")
         detect_format(files[0][0])  # not a CAN log, empty: one line now, before the estimator is compiled
-        if args.csv is not None and args.csv.resolve() == args.out.resolve():  # one would overwrite the other
-            raise UserFacingError(f"--out and --csv name the same file {args.out}")
         jobs = [(files[0][0], args.out, args.csv)]
     else:
         if args.out.exists() and not args.out.is_dir():
@@ -501,8 +501,6 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
         dup = _repeated(str(rel) for _, rel in files)  # counted once each: 200 000 listed logs took minutes
         if dup:
             raise UserFacingError(f"several input logs are named {', '.join(dup)}: their outputs would collide")
-        if args.csv is not None and args.csv.resolve() == args.out.resolve():
-            raise UserFacingError(f"--out and --csv name the same directory {args.out}: a CSV log's outputs collide")
         dup = _repeated(str(rel.with_suffix("")) for _, rel in files)
         if dup and args.csv is not None:
             raise UserFacingError(f"several input logs are named {', '.join(dup)}.*: their --csv outputs would collide")

@@ -149,16 +149,24 @@ def learning_times(evaluation, after: float) -> dict:
     return out
 
 
+def _flagged(evaluation, bit: int) -> np.ndarray:
+    """The scored frames whose valid bits carry ``bit``."""
+    return evaluation.mask & ((evaluation.estimates[:, L.E_VALID].astype(np.int64) & bit) != 0)
+
+
+def _share(flagged: np.ndarray, scored: np.ndarray) -> float | None:
+    return _r(float(flagged.sum()) / float(scored.sum())) if scored.any() else None
+
+
 def roll_valid_stats(evaluation, tolerance_deg: float | None) -> dict:
     """The roll's valid bit as the promise it is: the largest |error| over the scored frames flagged valid, against
     the tolerance the config documents (`estimator.supervisor.roll_tolerance_deg`), and the share flagged valid."""
-    E, m = evaluation.estimates, evaluation.mask
-    valid = m & ((E[:, L.E_VALID].astype(np.int64) & L.V_ROLL) != 0)
-    err = np.abs(E[:, L.E_ROLL] - evaluation.truth["roll"])
+    valid = _flagged(evaluation, L.V_ROLL)
+    err = np.abs(evaluation.estimates[:, L.E_ROLL] - evaluation.truth["roll"])
     return {
         "max_err_deg": _r(math.degrees(float(err[valid].max()))) if valid.any() else None,
         "tolerance_deg": tolerance_deg,
-        "share": _r(float(valid.sum()) / float(m.sum())) if m.any() else None,
+        "share": _share(valid, evaluation.mask),
     }
 
 
@@ -169,16 +177,16 @@ def torque_valid_stats(evaluation) -> dict:
     """The rider torque while `EST_RiderTorque_Valid`: the largest |error| of its 0.2 s centred mean (an unknown input
     estimated as a random walk lags a jab of the rider's; what a consumer of the torque uses is its trend) and the
     99th percentile of the |error| cycle by cycle, in N m, and the share flagged valid."""
-    E, m, t = evaluation.estimates, evaluation.mask, evaluation.t
-    valid = m & ((E[:, L.E_VALID].astype(np.int64) & L.V_RIDER_TORQUE) != 0)
-    err = E[:, L.E_RIDER_TORQUE] - evaluation.truth["rider_torque"]
+    t = evaluation.t
+    valid = _flagged(evaluation, L.V_RIDER_TORQUE)
+    err = evaluation.estimates[:, L.E_RIDER_TORQUE] - evaluation.truth["rider_torque"]
     dt = float(np.median(np.diff(t))) if t.size > 1 else 0.01
     n = max(1, int(round(TORQUE_MEAN_S / dt)) | 1)
     mean = np.convolve(err, np.ones(n) / n, mode="same")
     return {
         "max_mean_err_nm": _r(float(np.max(np.abs(mean[valid])))) if valid.any() else None,
         "p99_err_nm": _r(float(np.percentile(np.abs(err[valid]), 99))) if valid.any() else None,
-        "share": _r(float(valid.sum()) / float(m.sum())) if m.any() else None,
+        "share": _share(valid, evaluation.mask),
     }
 
 
