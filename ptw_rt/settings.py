@@ -35,7 +35,7 @@ ATTITUDE_SCHEMA = Section(
         "gyro_bias_rate": (Number("rad/s/sqrt(s)", ge=1e-8, le=0.1), 3.0e-5),
         "accel_bias_rate": (Number("m/s^2/sqrt(s)", ge=1e-7, le=1), 2.0e-4),
         "sideslip_accel_noise": (Number("m/s^2/sqrt(s)", ge=1e-3, le=100), 2.0),
-        "sideslip_accel_time": (Number("s", ge=0.01, le=100), 0.5),
+        "sideslip_accel_time": (Number("s", ge=0.01, le=100), 0.2),
         "sideslip_time": (Number("s", ge=0.01, le=1000), 5.0),
         # in a hard corner (its lean balancing a lateral acceleration g tan(roll) beyond `sideslip_dead_zone`) the
         # sideslip moves faster near the grip limit: the drive of dv_y/dt grows as sqrt(1 + (excess / this)^2)
@@ -81,6 +81,9 @@ PLAUSIBILITY_SCHEMA = Section(
         # the residual is not taken while the most likely tyre filter's short-window NIS (expected 5) is above
         # this: both torques come from linear-tyre models, and a slide makes them disagree whatever the sensors
         "model_max_nis_fast": (Number("", gt=0, le=1e4), 25.0),
+        # s the rider torque stays not VALID after that NIS was last above its limit (a slide's NIS dips under it
+        # for a cycle between two peaks)
+        "model_hold": (Number("s", ge=0, le=10), 0.2),
     },
 )
 
@@ -396,6 +399,7 @@ class PlausibilityTuning:
     hold: float
     lag: float
     model_max_nis_fast: float
+    model_hold: float
 
     def __post_init__(self) -> None:
         starts = self.band_start_kmh

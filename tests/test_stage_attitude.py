@@ -85,7 +85,9 @@ def test_a_held_rate_grows_the_roll_uncertainty_with_the_length_of_the_hold(sett
     for _ in range(20):
         att.attitude_step(st, b.outputs, b.params, *held)
     grown = P[att.X_PHI, att.X_PHI] - var0
-    assert grown >= (20 * att.UNMEASURED_RATE_SD * dt) ** 2
+    # within 1 %: the first held cycle still applies the last measured cycle's lateral force (processed one cycle
+    # late), which takes back a part in 10^4 of it; a sqrt(n) growth would be 20 times smaller
+    assert grown >= 0.99 * (20 * att.UNMEASURED_RATE_SD * dt) ** 2
     assert st[att.ST_HELD] == 20
     att.attitude_step(st, b.outputs, b.params, *args)
     assert st[att.ST_HELD] == 0
