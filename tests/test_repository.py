@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import re
+import shutil
+import subprocess
+
+import pytest
 
 from ptw_rt.paths import PROJECT_ROOT
 
@@ -32,3 +36,17 @@ def test_ci_runs_the_readme_test_command():
 def test_layout_named_by_the_product_owner():
     for name in ("pyproject.toml", "ptw_rt", "config", "dbc", "tests"):
         assert (PROJECT_ROOT / name).exists(), name
+
+
+def test_the_repository_root_holds_only_the_named_layout():
+    """A stray download (wheels, logs) in the root is not source: c1505c8 committed 13 wheels."""
+    git = shutil.which("git")
+    if git is None or not (PROJECT_ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    tracked = subprocess.run(
+        [git, "ls-files"], cwd=PROJECT_ROOT, capture_output=True, text=True, check=True, timeout=30
+    ).stdout.split()
+    top_level = {path.split("/", 1)[0] for path in tracked}
+    expected = {".ci", ".gitignore", "README.md", "config", "dbc", "docs", "ptw_rt", "pyproject.toml"}
+    expected |= {"systemd", "tests"}
+    assert top_level <= expected, sorted(top_level - expected)
