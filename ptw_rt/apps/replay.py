@@ -110,6 +110,11 @@ class _Feed:
         self.max_gap = max_gap
         self.progress = progress
         self.skipped = 0
+        # 29-bit frames whose id is an 11-bit input's: a logger that flags every frame extended, not another bus
+        self.extended_inputs = 0
+        self.input_ids = np.array(
+            sorted(lay.frame_id for lay in tracker.layouts if not lay.message.is_extended_frame), dtype=np.int64
+        )
         self._jumps: dict[int, tuple[int, float, float]] = {}  # frame index -> (line, from, to), not yet reported
 
     def __iter__(self) -> Iterator[Block]:
@@ -118,6 +123,8 @@ class _Feed:
             standard = ~frames.extended
             kept = np.flatnonzero(standard)
             self.skipped += len(frames) - kept.size
+            if kept.size != len(frames):
+                self.extended_inputs += int(np.isin(frames.ids[frames.extended], self.input_ids).sum())
             for jump in frames.jumps:  # the index among the frames kept (a 29-bit one: the next kept)
                 self._jumps[offset + int(np.searchsorted(kept, jump.index))] = jump[1:]
             if kept.size != len(frames):
@@ -328,12 +335,13 @@ def replay_log(
         blocks.close()
     if stats.malformed:
         log.warning("%s", stats.problems_line())
-    if stats.frames >= DENSE_LOG_FRAMES and cycles * DENSE_LOG_FRAMES_PER_CYCLE < stats.frames:
+    driven = stats.frames - feed.skipped  # the 29-bit frames skipped never reached a cycle
+    if driven >= DENSE_LOG_FRAMES and cycles * DENSE_LOG_FRAMES_PER_CYCLE < driven:
         # all stamps equal, or a whole ride's frames within a millisecond: every frame lands in one cycle or a few
         log.warning(
             "%s: %d frames in %d cycles (%.6f s of time stamps): not the time stamps of a recorded bus",
             in_path,
-            stats.frames,
+            driven,
             cycles,
             duration,
         )
@@ -349,6 +357,19 @@ def replay_log(
             f"{in_path}: none of its {stats.frames} frames is one the estimator reads ({', '.join(read)}): "
             f"{inputs.get('unknown_ids', 0)} of other ids, {skipped} skipped (29-bit, remote, error, FD); "
             "a log of another bus?"
+            + (
+                f" ({feed.extended_inputs} of the 29-bit ones carry an input's 11-bit id)"
+                if feed.extended_inputs
+                else ""
+            )
+        )
+    if feed.extended_inputs:
+        log.warning(
+            "%s: %d frames flagged 29-bit carry the id of an 11-bit input (%s) and were skipped: "
+            "a logger that marks every frame extended?",
+            in_path,
+            feed.extended_inputs,
+            ", ".join(f"0x{i:X}" for i in feed.input_ids),
         )
     wall = time.perf_counter() - wall0
     return {
@@ -371,6 +392,7 @@ def replay_log(
             {"kind": b.kind, "from": round(b.t_from, 6), "to": round(b.t_to, 6)} for b in drive.breaks[:20]
         ],
         "skipped_frames": feed.skipped + sum(stats.skipped.values()) + drive.bad_stamps,
+        "extended_input_frames": feed.extended_inputs,
         "log_duration_s": round(duration, 3),
         "wall_s": round(wall, 3),
         "x_real_time": round(duration / wall, 1) if wall > 0 else None,

@@ -262,6 +262,27 @@ def test_a_log_of_no_frame_the_estimator_reads_is_refused_not_replayed_as_all_fa
         _replay(path, tmp_path, runner)
     assert info.value.exit_code == 2 and "\n" not in str(info.value)
     assert not (tmp_path / "another_bus.out.log").exists()
+    assert ("600 of the 29-bit ones carry an input's 11-bit id" in str(info.value)) == (kind == "29-bit")
+
+
+def test_inputs_flagged_29_bit_on_part_of_a_log_are_said_once(tmp_path, runner, caplog):
+    """A logger that flags some frames extended: half the inputs skipped, the ride DEGRADED, only a count in the
+    JSON. Now one warning line names it (and the 29-bit frames never count as time stamps of the bus)."""
+    lines = clean_log_lines()
+    path = tmp_path / "half_extended.log"
+    path.write_text("\n".join(ln.replace(" 10", " 0000010", 1) if k % 2 else ln for k, ln in enumerate(lines)) + "\n")
+    with caplog.at_level(logging.WARNING):
+        s, _ = _replay(path, tmp_path, runner)
+    assert s["extended_input_frames"] == 300 and s["skipped_frames"] == 300
+    (line,) = _lines(caplog, "flagged 29-bit carry the id of an 11-bit input")
+    assert "300 frames" in line and "0x100" in line
+    assert not _lines(caplog, "not the time stamps of a recorded bus")
+    clean = tmp_path / "clean.log"
+    clean.write_text("\n".join(lines) + "\n")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        s, _ = _replay(clean, tmp_path, runner)
+    assert s["extended_input_frames"] == 0 and not _lines(caplog, "flagged 29-bit")
 
 
 def test_a_log_whose_time_stamps_are_all_equal_is_said(tmp_path, runner, caplog):
