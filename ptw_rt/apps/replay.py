@@ -207,6 +207,17 @@ def _open_log_writer(path: Path, channel: str) -> Any:
         raise _output_error(path, exc) from None
 
 
+def _remove_outputs(paths: list[Path]) -> None:
+    """Remove the regular files among ``paths`` (``/dev/null`` and the like stay); failures are ignored: the
+    error already being reported is the one the user needs."""
+    for path in paths:
+        try:
+            if path.is_file():
+                path.unlink()
+        except OSError:
+            pass
+
+
 # one printf-style template per row: "%.6f" / "%.10g" format floats exactly as f"{v:.6f}" / f"{v:.10g}" do
 # (inf, nan and -0 included), at a fraction of the cost of one f-string per value
 _CSV_TEMPLATE = "%.6f," + ",".join(["%.10g"] * len(ESTIMATE_NAMES)) + "\n"
@@ -260,10 +271,14 @@ def replay_log(
     duration = 0.0
     csv: IO[str] | None = None
     writer: Any = None
+    created: list[Path] = []  # the outputs this replay opened: removed if it fails, never left half written
+    finished = False
     try:
         writer = _open_log_writer(out_log, channel)
+        created.append(out_log)
         if csv_path is not None:
             csv = _open_output(Path(csv_path), "--csv")
+            created.append(Path(csv_path))
             try:
                 csv.write("time," + ",".join(ESTIMATE_NAMES) + "\n")
             except OSError as exc:
@@ -325,6 +340,7 @@ def replay_log(
                     close()  # flushes: a full disk shows here
                 except OSError as exc:
                     raise _output_error(path, exc) from None
+        finished = True
     finally:
         for close in (None if csv is None else csv.close, None if writer is None else writer.close):
             if close is not None:
@@ -333,6 +349,8 @@ def replay_log(
                 except Exception:  # noqa: BLE001 - already failing: the first error is the one reported
                     pass
         blocks.close()
+        if not finished:  # a full disk or an unreadable input mid-log: a truncated output would pass for a ride
+            _remove_outputs(created)
     if stats.malformed:
         log.warning("%s", stats.problems_line())
     driven = stats.frames - feed.skipped  # the 29-bit frames skipped never reached a cycle
@@ -349,9 +367,7 @@ def replay_log(
     read = {name: n - frames_before.get(name, 0) for name, n in _input_frames(inputs).items()}
     if not any(read.values()):
         # a log of another bus (29-bit frames, other ids): every cycle FAULT and exit 0 said nothing was wrong
-        for path in (out_log, csv_path):
-            if path is not None:
-                path.unlink(missing_ok=True)
+        _remove_outputs(created)
         skipped = feed.skipped + sum(stats.skipped.values())
         raise EmptyLogError(
             f"{in_path}: none of its {stats.frames} frames is one the estimator reads ({', '.join(read)}): "

@@ -184,9 +184,36 @@ def test_output_errors_are_one_line(target, text, hostile_logs, tmp_path, runner
     assert "\n" not in str(info.value)
 
 
-def test_csv_output_error(hostile_logs, tmp_path, runner):
+def test_csv_output_error_leaves_no_half_written_output(hostile_logs, tmp_path, runner):
+    """The CSV fails on a full disk mid-log: the output log, written up to there, was left to pass for a ride."""
     with pytest.raises(ReplayOutputError, match="/dev/full"):
         replay_log(hostile_logs["gap_3s"], tmp_path / "o.log", "/dev/full", DEFAULT_CONFIG, runner=runner)
+    assert not (tmp_path / "o.log").exists()
+    assert replay_app.Path("/dev/full").exists()  # a device is never removed
+
+
+def test_an_output_failing_mid_log_is_removed(hostile_logs, tmp_path, runner, monkeypatch):
+    """The output log's disk fills after its first chunk: neither it nor the CSV is left behind."""
+    real = replay_app.open_writer
+    calls = {"n": 0}
+
+    def filling(path, **kw):
+        writer = real(path, **kw)
+        write = writer.write_frames
+
+        def write_frames(*a):
+            calls["n"] += 1
+            write(*a)  # written, then the disk is full
+            raise OSError(28, "No space left on device")
+
+        writer.write_frames = write_frames
+        return writer
+
+    monkeypatch.setattr(replay_app, "open_writer", filling)
+    with pytest.raises(ReplayOutputError, match="No space left"):
+        replay_log(hostile_logs["gap_3s"], tmp_path / "o.log", tmp_path / "o.csv", DEFAULT_CONFIG, runner=runner)
+    assert calls["n"] == 1
+    assert not (tmp_path / "o.log").exists() and not (tmp_path / "o.csv").exists()
 
 
 def test_non_regular_input_named_as_such(hostile_logs, tmp_path):
