@@ -11,7 +11,7 @@ from ptw_rt.core import uio_sensors as cus
 from ptw_rt.design import uio_sensors as dus
 from ptw_rt.design.discretize import zoh
 from ptw_rt.design.file import load_design
-from ptw_rt.design.output_sets import CANDIDATES, analyze_outputs
+from ptw_rt.design.output_sets import CANDIDATES, analyze_outputs, parse_candidates
 from ptw_rt.model.sharp import kmh, state_space
 from ptw_rt.paths import DEFAULT_DESIGN
 
@@ -98,6 +98,16 @@ def test_analysis_table(vehicle):
     assert not any(any(r["feedthrough"]) for r in res["candidates"])  # a_y depends on states only
     # the roll-rate channel carries tau 70 x weaker than the steer channel (eq. 15 gains, N m per unit)
     assert by[("roll_rate", "tau")]["torque_gain_100kmh"][0] > 50 * by[("steer", "tau")]["torque_gain_100kmh"][0]
+
+
+def test_output_sets_given_by_hand_are_checked_and_analysed_once():
+    """`--outputs steer,steer` was analysed as a two-sensor set, and a set repeated (in any order) twice."""
+    with pytest.raises(ValueError, match="named twice"):
+        parse_candidates("steer,steer", None)
+    with pytest.raises(ValueError, match="unknown signal"):
+        parse_candidates("steer,speed", None)
+    cands = parse_candidates("steer,lat_accel;lat_accel,steer;steer,lat_accel;steer", None)
+    assert cands == [(("steer", "lat_accel"), "phi_tau"), (("steer",), "tau"), (("steer",), "tau_state")]
 
 
 @pytest.mark.slow

@@ -187,17 +187,22 @@ def parse_candidates(outputs: str | None, unknown: str | None):
     if not outputs:
         return list(CANDIDATES)
     cands = []
+    seen = set()  # (the set of signals, unknown inputs): the same system whatever the order, analysed once
     for group in outputs.split(";"):
         outs = tuple(x.strip() for x in group.split(",") if x.strip())
         for o in outs:
             if o not in us.OUTPUT_NAMES:
                 raise ValueError(f"--outputs: unknown signal {o!r}; choose from {', '.join(us.OUTPUT_NAMES)}")
+        if len(set(outs)) != len(outs):  # a signal twice is a rank-deficient output matrix, not a sensor set
+            raise ValueError(f"--outputs {group}: a signal named twice")
         kinds = [unknown] if unknown else ([us.UI_PHI_TAU] if len(outs) == 2 else [us.UI_TAU, UI_TAU_STATE])
         for k in kinds:
             need = 2 if k == us.UI_PHI_TAU else 1
             if len(outs) != need:
                 raise ValueError(f"--outputs {group}: unknown inputs {k} need {need} output(s) (square system)")
-            cands.append((outs, k))
+            if (frozenset(outs), k) not in seen:
+                seen.add((frozenset(outs), k))
+                cands.append((outs, k))
     return cands
 
 
