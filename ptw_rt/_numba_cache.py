@@ -5,6 +5,9 @@ The base is `NUMBA_CACHE_DIR` if set (the systemd unit sets it under `CacheDirec
 version of `ptw_rt/core`, `edge`, `io` and `sim` (the packages with jitted code), marked as ours; marked
 directories of other versions that nobody touched for an hour are removed, so upgrades do not accumulate caches
 (nothing else is ever removed).
+When the base cannot be written (a read-only home), the keyed directory goes below a private
+`ptw-rt-numba-<uid>` in the temporary directory instead (never numba's own fallback, `__pycache__` beside the
+source, which is not keyed), and the compile note says so.
 Nothing here may raise: a cache problem costs one slow start, never a failed one.
 """
 
@@ -14,6 +17,8 @@ import hashlib
 import os
 import re
 import shutil
+import stat
+import tempfile
 import time
 from pathlib import Path
 
@@ -43,18 +48,51 @@ def _default_base() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "ptw-rt" / "numba"
 
 
+# why the keyed directory is not below the configured base (it could not be written), for the compile note
+_FALLBACK_REASON: str | None = None
+_NOWHERE = False  # neither could be written: numba compiles on every start
+
+
+def _owned_private_dir(path: Path) -> bool:
+    """``path`` is a real directory of this user that nobody else may write: numba loads machine code from the
+    cache, so a directory another user planted (in /tmp) would be code they run as us."""
+    st = path.lstat()
+    return stat.S_ISDIR(st.st_mode) and st.st_uid == os.geteuid() and not st.st_mode & 0o022
+
+
+def _fallback_base() -> Path:
+    return Path(tempfile.gettempdir()) / f"ptw-rt-numba-{os.geteuid()}"
+
+
 def key_numba_cache_to_source() -> None:
+    global _FALLBACK_REASON, _NOWHERE
     try:
         base = Path(os.environ.get(_ENV) or _default_base())
         if _KEY.fullmatch(base.name) and (base / _MARKER).is_file():  # keyed already (a child process)
             base = base.parent
         key = _PREFIX + source_key()
-        os.environ[_ENV] = str(base / key)
         try:
             (base / key).mkdir(parents=True, exist_ok=True)
             (base / key / _MARKER).touch()
-        except OSError:
-            return  # numba finds its own place; nothing of ours to tidy
+        except OSError as exc:
+            # a read-only home or cache directory: numba would fall back to __pycache__ beside the source, which is
+            # not keyed (a changed callee's stale machine code would run) -- a private keyed directory in the
+            # temporary directory instead (compiled again after a reboot when that is a tmpfs)
+            fallback = _fallback_base()
+            try:
+                fallback.mkdir(mode=0o700, exist_ok=True)
+                if not _owned_private_dir(fallback):
+                    raise PermissionError(f"{fallback} is not a private directory of this user")
+                (fallback / key).mkdir(exist_ok=True)
+                (fallback / key / _MARKER).touch()
+            except OSError as exc2:
+                _FALLBACK_REASON = f"{base} cannot be written ({exc.strerror or exc}), nor {fallback} ({exc2})"
+                _NOWHERE = True
+                os.environ[_ENV] = str(base / key)  # numba finds its own place; nothing of ours to tidy
+                return
+            _FALLBACK_REASON = f"{base} cannot be written: {exc.strerror or exc}"
+            base = fallback
+        os.environ[_ENV] = str(base / key)
         _remove_other_versions(base, key)
     except Exception:  # noqa: BLE001 - never fail an import over a cache
         pass
@@ -100,7 +138,12 @@ def announce_compile(stream=None) -> bool:
         return False
     stream = stream if stream is not None else sys.stderr
     try:
-        stream.write(COMPILING_NOTE.format(cache=os.environ.get(_ENV, "?")) + "\n")
+        note = COMPILING_NOTE.format(cache=os.environ.get(_ENV, "?"))
+        if _NOWHERE:
+            note = note.replace(", once (", ", on every start (")
+        if _FALLBACK_REASON is not None:
+            note = f"{note[:-1]}; {_FALLBACK_REASON})"
+        stream.write(note + "\n")
         stream.flush()
     except (OSError, ValueError):
         return False

@@ -88,3 +88,45 @@ def test_only_our_own_cache_directories_are_ever_removed(tmp_path, monkeypatch):
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     _numba_cache.key_numba_cache_to_source()
     assert not ours.exists() and theirs.is_dir() and named.is_dir()  # ours, stale: removed; nothing else
+
+
+def test_a_cache_directory_that_cannot_be_written_falls_back_to_a_private_keyed_one(tmp_path, monkeypatch):
+    """A read-only home left NUMBA_CACHE_DIR naming a directory that could not be made: numba fell back to
+    __pycache__ beside the source (not keyed to the source: a changed callee's stale code could run) while the note
+    said "once" and named the unwritable path."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(blocker / "cache"))  # below a file: cannot be made
+    monkeypatch.delenv("NUMBA_DISABLE_JIT", raising=False)
+    monkeypatch.setattr(_numba_cache.tempfile, "gettempdir", lambda: str(tmp_path / "tmp"))
+    monkeypatch.setattr(_numba_cache, "_FALLBACK_REASON", None)
+    monkeypatch.setattr(_numba_cache, "_NOWHERE", False)
+    (tmp_path / "tmp").mkdir()
+    _numba_cache.key_numba_cache_to_source()
+    private = tmp_path / "tmp" / f"ptw-rt-numba-{os.geteuid()}"
+    keyed = os.environ["NUMBA_CACHE_DIR"]
+    assert keyed == str(private / f"src-{_numba_cache.source_key()}") and os.path.isdir(keyed)
+    assert private.stat().st_mode & 0o777 == 0o700
+    buf = io.StringIO()
+    assert _numba_cache.announce_compile(buf)
+    assert f"once (numba cache: {keyed}; {blocker / 'cache'} cannot be written" in buf.getvalue()
+
+
+def test_a_planted_shared_fallback_directory_is_never_used(tmp_path, monkeypatch):
+    """Numba loads machine code from its cache: a fallback directory in /tmp that another user could write is code
+    they would run as us. It is refused, and the note says the estimator compiles on every start."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(blocker / "cache"))
+    monkeypatch.delenv("NUMBA_DISABLE_JIT", raising=False)
+    monkeypatch.setattr(_numba_cache.tempfile, "gettempdir", lambda: str(tmp_path))
+    monkeypatch.setattr(_numba_cache, "_FALLBACK_REASON", None)
+    monkeypatch.setattr(_numba_cache, "_NOWHERE", False)
+    planted = tmp_path / f"ptw-rt-numba-{os.geteuid()}"
+    planted.mkdir()
+    planted.chmod(0o777)
+    _numba_cache.key_numba_cache_to_source()
+    assert not os.environ["NUMBA_CACHE_DIR"].startswith(str(planted)) and not any(planted.iterdir())
+    buf = io.StringIO()
+    assert _numba_cache.announce_compile(buf)
+    assert "on every start" in buf.getvalue() and "not a private directory" in buf.getvalue()
