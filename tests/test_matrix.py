@@ -64,6 +64,30 @@ def test_roll_valid_stats_score_only_the_frames_flagged_valid():
     assert mx.roll_valid_stats(ev, 3.0)["max_err_deg"] is None  # never valid: nothing wrong was published
 
 
+def test_torque_valid_stats_charge_a_cycle_only_with_what_came_before_it():
+    """Random set 51, `handling_40_120` seed 5895: the torque within 1 N m and VALID until a jab's first cycle, when
+    VALID dropped; the centred 0.2 s mean charged those cycles with the jab 0.1 s later (19.2 N m)."""
+    from types import SimpleNamespace
+
+    from ptw_rt.core import layout as L  # noqa: N812
+
+    n = 200
+    t = np.arange(n) * 0.01
+    truth = np.full(n, 10.0)
+    truth[100:110] = -80.0  # a jab of the rider's
+    E = np.zeros((n, L.ESTIMATES_SIZE))
+    E[:, L.E_RIDER_TORQUE] = truth + 0.5
+    E[100:115, L.E_RIDER_TORQUE] = 10.0  # the estimate lags the jab ...
+    E[:100, L.E_VALID] = L.V_RIDER_TORQUE  # ... and is not VALID from its first cycle on
+    ev = SimpleNamespace(estimates=E, mask=np.ones(n, bool), truth={"rider_torque": truth}, t=t)
+    s = mx.torque_valid_stats(ev)
+    assert s["max_mean_err_nm"] == pytest.approx(0.5) and s["share"] == pytest.approx(0.5)
+    E[120:140, L.E_VALID] = L.V_RIDER_TORQUE  # VALID again: the trailing mean still holds the lag
+    assert mx.torque_valid_stats(ev)["max_mean_err_nm"] == pytest.approx((9 * 90 + 6 * 0.5) / 20)
+    assert list(mx.trailing_mean(np.arange(5.0), 3)) == [0.0, 0.5, 1.0, 2.0, 3.0]
+    assert mx.trailing_mean(np.arange(2.0), 3).tolist() == [0.0, 0.5] and mx.trailing_mean(np.zeros(0), 3).size == 0
+
+
 def test_settle_time_and_cornering_seconds():
     t = np.arange(0, 40, 0.01)
     truth = np.where(t < 20, 1000.0, 600.0)

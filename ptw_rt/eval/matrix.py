@@ -170,19 +170,32 @@ def roll_valid_stats(evaluation, tolerance_deg: float | None) -> dict:
     }
 
 
-TORQUE_MEAN_S = 0.2  # s: the torque's VALID error is measured on centred means this long (a rider's jab is faster)
+TORQUE_MEAN_S = 0.2  # s: the torque's VALID error is measured on trailing means this long (a rider's jab is faster)
+
+
+def trailing_mean(x: np.ndarray, n: int) -> np.ndarray:
+    """The mean of the last ``n`` samples up to and including each one (fewer at the start): what a consumer of the
+    signal can compute at that cycle."""
+    c = np.cumsum(x)
+    out = np.empty_like(c)
+    k = min(n, c.size)
+    out[:k] = c[:k] / np.arange(1, k + 1)
+    out[k:] = (c[k:] - c[: c.size - k]) / n
+    return out
 
 
 def torque_valid_stats(evaluation) -> dict:
-    """The rider torque while `EST_RiderTorque_Valid`: the largest |error| of its 0.2 s centred mean (an unknown input
-    estimated as a random walk lags a jab of the rider's; what a consumer of the torque uses is its trend) and the
-    99th percentile of the |error| cycle by cycle, in N m, and the share flagged valid."""
+    """The rider torque while `EST_RiderTorque_Valid`: the largest |error| of its 0.2 s trailing mean (an unknown input
+    estimated as a random walk lags a jab of the rider's; what a consumer of the torque uses is its trend, and at a
+    cycle it can only average what has been published) and the 99th percentile of the |error| cycle by cycle, in
+    N m, and the share flagged valid. A centred mean charged the estimate at t with the rider's torque up to 0.1 s
+    later: a VALID estimate within 1 N m was scored 19 N m off because a jab began two cycles on."""
     t = evaluation.t
     valid = _flagged(evaluation, L.V_RIDER_TORQUE)
     err = evaluation.estimates[:, L.E_RIDER_TORQUE] - evaluation.truth["rider_torque"]
     dt = float(np.median(np.diff(t))) if t.size > 1 else 0.01
-    n = max(1, int(round(TORQUE_MEAN_S / dt)) | 1)
-    mean = np.convolve(err, np.ones(n) / n, mode="same")
+    n = max(1, int(round(TORQUE_MEAN_S / dt)))
+    mean = trailing_mean(err, n)
     return {
         "max_mean_err_nm": _r(float(np.max(np.abs(mean[valid])))) if valid.any() else None,
         "p99_err_nm": _r(float(np.percentile(np.abs(err[valid]), 99))) if valid.any() else None,
