@@ -529,7 +529,7 @@ def cell_table(cells: Sequence[dict]) -> str:
     )
     lines.append(
         "tau%pk: rider torque RMSE in % of the ride's peak; tau/0: over the RMSE of an all-zero estimate; tV: largest"
-        " |error| [N m] of the torque's 0.2 s mean while EST_RiderTorque_Valid; uio%pk:"
+        " |error| [N m] of the torque's 0.2 s trailing mean while EST_RiderTorque_Valid; uio%pk:"
         " the UIHOSMO on the sensors' torque RMSE in % of the peak (issue #16: the plausibility monitor's channel);"
         " stiffness:"
     )

@@ -241,7 +241,7 @@ def summary_text(result: dict) -> str:
         f" {st['largest_valid_mean_err_pct']} %, mean <= {STIFFNESS_VALID_MEAN_PCT:g} % on {st['mean_le_10pct']} of"
         f" those {st['rides_valid']}",
         f"torque: <= {TORQUE_MAX_PCT_OF_PEAK:g} % of the peak on {tq['le_15pct_of_peak']}, largest"
-        f" {tq['largest_pct_of_peak']} %; while VALID, its 0.2 s mean at most"
+        f" {tq['largest_pct_of_peak']} %; while VALID, its 0.2 s trailing mean at most"
         f" {tq['largest_valid_mean_err_nm']} N m off",
         f"alarms (none injected): {al['alarmed_with_zero_right']} of {al['rides_with_zero_right']} rides with the"
         f" encoder zero right, {al['alarmed_with_zero_a_count_off']} of {al['rides_with_zero_a_count_off']} with it"
@@ -252,7 +252,7 @@ def summary_text(result: dict) -> str:
         ("largest roll RMSE [deg]", roll["worst_rmse"], "roll_rmse_deg"),
         ("largest stiffness error while VALID [%]", st["worst_valid_err"], "stiffness_valid_max_err_pct"),
         (
-            "largest torque error (0.2 s mean) while VALID [N m]",
+            "largest torque error (0.2 s trailing mean) while VALID [N m]",
             tq["worst_valid_mean_err"],
             "torque_valid_max_mean_err_nm",
         ),
