@@ -241,6 +241,12 @@ def read_yaml(path: str | Path) -> Any:
         raise ConfigError(f"{path}: not valid YAML{where}: {short_text(problem)}") from None
     except (ValueError, TypeError, OverflowError) as exc:  # e.g. a date like 2024-13-45 (constructors raise these)
         raise ConfigError(f"{path}: not valid YAML: {short_text(str(exc))}") from None
+    except (KeyError, IndexError, AttributeError) as exc:
+        # PyYAML's constructors on an explicit tag they cannot read: !!bool "maybe", !!int "", !!timestamp "abc"
+        raise ConfigError(
+            f"{path}: not valid YAML: a value its explicit tag (!!bool, !!int, !!float, !!timestamp ...) cannot read"
+            f" ({type(exc).__name__} {short_text(str(exc))})"
+        ) from None
     except RecursionError:  # defence in depth: the depth bound above should make this unreachable
         raise ConfigError(f"{path}: not valid YAML: nested too deeply") from None
 

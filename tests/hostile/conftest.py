@@ -86,6 +86,13 @@ def build_configs(d: Path) -> dict[str, Path]:
             "long_key": _write(d / "long_key.yaml", good.replace("vehicle:", "k" * 100_000 + ": 1\nvehicle:", 1)),
             "binary_tag": _write(d / "tag.yaml", "a: !!python/object:os.system [echo pwned]\n"),
             "bad_date": _write(d / "date.yaml", "a: 2024-13-45\n"),
+            # explicit tags PyYAML's constructors cannot read raise KeyError / IndexError / AttributeError (fuzzing,
+            # 2026-11-26): tracebacks
+            "tag_bool_maybe": _write(d / "tag_bool.yaml", 'a: !!bool "maybe"\n'),
+            "tag_int_empty": _write(d / "tag_int.yaml", 'a: !!int ""\n'),
+            "tag_int_sign": _write(d / "tag_int_sign.yaml", 'a: !!int "-"\n'),
+            "tag_float_empty": _write(d / "tag_float.yaml", 'a: !!float ""\n'),
+            "tag_timestamp": _write(d / "tag_timestamp.yaml", 'a: !!timestamp "abc"\n'),
             "many_nodes": _write(d / "nodes.yaml", "".join(f"k{i}: [1, 2]\n" for i in range(20_000))[:250_000]),
             # values within the schema's ranges that admit no design or no simulated rider (found by fuzzing,
             # 2026-11-26): numpy's LinAlgError / ArithmeticError / MemoryError reached the user as tracebacks

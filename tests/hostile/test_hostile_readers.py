@@ -112,6 +112,11 @@ CONFIG_NAMES = [
     "long_key",
     "binary_tag",
     "bad_date",
+    "tag_bool_maybe",
+    "tag_int_empty",
+    "tag_int_sign",
+    "tag_float_empty",
+    "tag_timestamp",
     "many_nodes",
 ]
 
@@ -140,6 +145,7 @@ def test_config_messages_say_why(hostile_configs):
     assert "digits" in why("huge_integer")
     assert "more than" in why("many_nodes")
     assert "..." in why("long_bad_text")  # the value is quoted as a short excerpt
+    assert "explicit tag" in why("tag_bool_maybe") and "explicit tag" in why("tag_timestamp")
 
 
 def test_good_config_still_loads(settings):
