@@ -129,6 +129,14 @@ def _speeds(text: str) -> list[float]:
     return values
 
 
+def _file_name(text: str) -> Path:
+    """A file name argument that names a file: ``--state-file ""`` was the current directory (warned about as a
+    directory the daemon could not read)."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty file name")
+    return Path(text)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its errors as one line (the usage block is what --help is for): like every other refusal of
     the command line, one line on stderr and exit 2."""
@@ -278,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
     p.add_argument("--interface", default=None, help="override runtime.bus.interface")
     p.add_argument("--channel", default=None, help="override runtime.bus.channel")
-    p.add_argument("--state-file", type=Path, default=None, help="override runtime.state_file")
+    p.add_argument("--state-file", type=_file_name, default=None, help="override runtime.state_file")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run forever)")
     p.add_argument("--check-config", action="store_true", help="validate config and design file, then exit")
     p.set_defaults(handler=_run)

@@ -73,16 +73,36 @@ class Number:
         return f" [{self.unit}]" if self.unit else ""
 
 
+MAX_PATH_CHARS = 4096  # Linux's PATH_MAX
+
+
+def check_path_text(key: str, value: str) -> str:
+    """A file name from a configuration or the command line: non-empty, no NUL (no system call takes one: it was a
+    ValueError traceback when the daemon first opened the file), at most ``MAX_PATH_CHARS``."""
+    if not value:
+        raise ConfigError(f"{key}: an empty file name")
+    if "\0" in value:
+        raise ConfigError(f"{key}: a file name with a NUL character: {excerpt(value)}")
+    if len(value) > MAX_PATH_CHARS:
+        raise ConfigError(f"{key}: a file name of {len(value)} characters (at most {MAX_PATH_CHARS})")
+    return value
+
+
 @dataclass(frozen=True)
 class Text:
     choices: tuple[str, ...] | None = None
     doc: str = ""
+    path: bool = False  # a file name: checked by check_path_text
 
     def check(self, key: str, value: Any) -> str:
         if not isinstance(value, str):
             raise ConfigError(f"{key}: expected text, got {type(value).__name__} {excerpt(value)}")
         if self.choices is not None and value not in self.choices:
             raise ConfigError(f"{key}: must be one of {', '.join(self.choices)}; got {excerpt(value)}")
+        if self.path:
+            return check_path_text(key, value)
+        if "\0" in value:
+            raise ConfigError(f"{key}: text with a NUL character: {excerpt(value)}")
         return value
 
 

@@ -310,7 +310,7 @@ GPS_SCHEMA = Section(
             Text(choices=("can", "serial"), doc="can (GPS_Velocity frames) or serial (NMEA 0183 receiver)"),
             "can",
         ),
-        "serial_port": (Text(doc="e.g. /dev/serial/by-id/usb-u-blox_GNSS_receiver-if00"), "/dev/ttyACM0"),
+        "serial_port": (Text(doc="e.g. /dev/serial/by-id/usb-u-blox_GNSS_receiver-if00", path=True), "/dev/ttyACM0"),
         "serial_baudrate": (Number("baud", integer=True, ge=1200, le=4_000_000), 9600),
     },
 )
@@ -323,7 +323,7 @@ RUNTIME_SCHEMA = Section(
         "gps": (GPS_SCHEMA, GPS_SCHEMA.check("runtime.gps", {})),
         # a message is stale after this many of its DBC cycle times without a valid frame
         "stale_after_periods": (Number("", gt=1, le=100), 3.0),
-        "state_file": (Text(doc="learned tyre stiffness, saved atomically"), "/var/lib/ptw-rt/state.json"),
+        "state_file": (Text(doc="learned tyre stiffness, saved atomically", path=True), "/var/lib/ptw-rt/state.json"),
         "state_save_interval_s": (Number("s", ge=1, le=86400), 60.0),
         "health_log_interval_s": (Number("s", ge=1, le=86400), 10.0),
         "log_repeat_interval_s": (Number("s", ge=0), 5.0),

@@ -91,6 +91,8 @@ def open_regular(
         raise error(f"{path}: {what} not found") from None
     except OSError as exc:
         raise error(f"{path}: cannot open {what} ({exc.strerror or exc})") from None
+    except ValueError:  # a NUL in the name: no system call takes one
+        raise error(f"{path!r}: cannot open {what} (a NUL character in its name)") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):

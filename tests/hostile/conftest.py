@@ -93,6 +93,11 @@ def build_configs(d: Path) -> dict[str, Path]:
             "tag_int_sign": _write(d / "tag_int_sign.yaml", 'a: !!int "-"\n'),
             "tag_float_empty": _write(d / "tag_float.yaml", 'a: !!float ""\n'),
             "tag_timestamp": _write(d / "tag_timestamp.yaml", 'a: !!timestamp "abc"\n'),
+            # a NUL in a file name passed --check-config and was a ValueError traceback when the daemon opened it
+            "state_file_nul": _write(
+                d / "state_nul.yaml",
+                good.replace("state_file: /var/lib/ptw-rt/state.json", 'state_file: "/tmp/a\\0b"', 1),
+            ),
             "many_nodes": _write(d / "nodes.yaml", "".join(f"k{i}: [1, 2]\n" for i in range(20_000))[:250_000]),
             # values within the schema's ranges that admit no design or no simulated rider (found by fuzzing,
             # 2026-11-26): numpy's LinAlgError / ArithmeticError / MemoryError reached the user as tracebacks

@@ -117,6 +117,7 @@ CONFIG_NAMES = [
     "tag_int_sign",
     "tag_float_empty",
     "tag_timestamp",
+    "state_file_nul",
     "many_nodes",
 ]
 
@@ -146,6 +147,7 @@ def test_config_messages_say_why(hostile_configs):
     assert "more than" in why("many_nodes")
     assert "..." in why("long_bad_text")  # the value is quoted as a short excerpt
     assert "explicit tag" in why("tag_bool_maybe") and "explicit tag" in why("tag_timestamp")
+    assert "runtime.state_file: a file name with a NUL character" in why("state_file_nul")
 
 
 def test_good_config_still_loads(settings):
