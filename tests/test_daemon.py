@@ -272,6 +272,19 @@ def test_an_interface_python_can_does_not_have_is_a_config_error(tmp_path, capsy
     assert "runtime.bus.interface 'socketcann' is not a python-can interface" in err and len(err.splitlines()) == 1
 
 
+def test_an_interface_that_needs_more_settings_is_one_line(tmp_path, capsys):
+    """python-can's socketcand back end needs a host and a port: its TypeError was a traceback, exit 1, from `run`
+    and from `monitor` (found by fuzzing)."""
+    state = str(tmp_path / "s.json")
+    assert cli_main(["run", "--interface", "socketcand", "--channel", "x", "--state-file", state]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("ptw-rt run: CAN interface 'socketcand' needs settings runtime.bus does not carry")
+    assert "Traceback" not in "\n".join(err)
+    assert cli_main(["monitor", "--interface", "socketcand", "--channel", "x"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs more settings" in err[0]
+
+
 def test_run_daemon_duration_on_virtual_bus(tmp_path):
     args = argparse.Namespace(
         config=DEFAULT_CONFIG,

@@ -324,6 +324,11 @@ def _open_bus(interface: str, channel: str, filters: list[dict]):
         return can.Bus(interface=interface, channel=channel, receive_own_messages=False, can_filters=filters)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
         raise UserFacingError(f"cannot open CAN bus {interface}:{channel}: {exc}") from exc
+    except TypeError as exc:  # a back end whose constructor needs more than an interface and a channel (socketcand)
+        raise UserFacingError(
+            f"cannot open CAN bus {interface}:{channel}: the interface needs more settings ({exc}); "
+            "give them in python-can's configuration file (~/.canrc)"
+        ) from exc
 
 
 def _interrupt(signum, frame) -> None:  # noqa: ANN001 - signal's handler protocol

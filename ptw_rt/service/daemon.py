@@ -134,6 +134,11 @@ def _open_bus(bus_cfg: BusSettings, filters: list[dict]) -> can.BusABC:
         return can.Bus(**kwargs)
     except (can.CanInterfaceNotImplementedError, ImportError, NotImplementedError) as exc:
         raise UserFacingError(f"CAN interface {bus_cfg.interface!r} is not available: {exc}") from exc
+    except TypeError as exc:  # a back end whose constructor needs arguments the configuration has no place for
+        raise UserFacingError(
+            f"CAN interface {bus_cfg.interface!r} needs settings runtime.bus does not carry ({exc}); "
+            "give them in python-can's configuration file (~/.canrc)"
+        ) from exc
 
 
 # the input message a serial GNSS receiver stands for (its solutions are fed as this message's signals)
