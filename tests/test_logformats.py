@@ -9,6 +9,7 @@ import os
 import random
 import re
 import shutil
+import struct
 import subprocess
 import sys
 import time
@@ -287,6 +288,38 @@ def test_hostile_mf4_is_one_line(ride, tmp_path):
         assert "\n" not in str(caught.value) and err.getvalue() == ""
 
 
+def _with_channel_group_field(data: bytes, offset: int, value: int) -> bytes:
+    """The MF4 file with one field of its first channel group block (``##CG``) overwritten: 80 the record count
+    (u64), 96 the record size (u32)."""
+    b = bytearray(data)
+    i = b.find(b"##CG")
+    fmt = "<Q" if offset == 80 else "<I"
+    b[i + offset : i + offset + struct.calcsize(fmt)] = struct.pack(fmt, value)
+    return bytes(b)
+
+
+def test_crafted_mf4_files_are_one_line_within_bounds(ride, tmp_path, monkeypatch):
+    """asammdf parses a file whole in its constructor: crafted files of 43 kB (fuzzing, 2026-11-26) looped forever
+    (a record count of 0), aborted the interpreter with malloc(): invalid size (a record size of 1: SIGABRT, exit
+    134) or grew to 4.4 GB (a record size of 2^32 - 1). Read in a child process under limits: one line each."""
+    from ptw_rt.io import mf4_sandbox
+
+    monkeypatch.setattr(mf4_sandbox, "cpu_limit_s", lambda size: 4)  # the child's CPU limit comes from the parent
+    data = ride["mf4"].read_bytes()
+    cases = {
+        "endless": (_with_channel_group_field(data, 80, 0), "unreadable MF4 file \\(its reader was ended by signal"),
+        "abort": (_with_channel_group_field(data, 96, 1), "unreadable MF4 file \\(its reader was ended by signal"),
+        "huge_records": (_with_channel_group_field(data, 96, 2**32 - 1), "corrupt MF4 file \\(channel group 0"),
+    }
+    for name, (content, message) in cases.items():
+        path = tmp_path / f"{name}.mf4"
+        path.write_bytes(content)
+        t0 = time.monotonic()
+        with pytest.raises(LogFormatError, match=message) as caught:
+            _frames(path)
+        assert "\n" not in str(caught.value) and time.monotonic() - t0 < 4 + mf4_sandbox.WALL_S_EXTRA, name
+
+
 def test_not_a_log_and_empty(tmp_path):
     rng = random.Random(3)
     (tmp_path / "x.asc").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))
@@ -368,9 +401,12 @@ def test_the_command_line_loads_mf4_support_only_for_an_mf4_log(ride, tmp_path):
 
     assert "PANDAS False ASAMMDF False" in run(ride["candump"], "--out", tmp_path / "a.log")
     assert "ASAMMDF True" in run(ride["candump"], "--out", tmp_path / "a.mf4")
-    # read back: the estimator's own frames, none of them an input (one line, exit 2), but every one read
+    # read back: the estimator's own frames, none of them an input (one line, exit 2), but every one read, by a
+    # child process (``ptw_rt.io.mf4_sandbox``): asammdf is never loaded into the replay itself to read
     again = run(tmp_path / "a.mf4", "--out", tmp_path / "b.log", code=2)
-    assert "ASAMMDF True" in again and re.search(r"none of its [1-9]\d* frames is one the estimator reads", again)
+    assert "PANDAS False ASAMMDF False" in again and re.search(
+        r"none of its [1-9]\d* frames is one the estimator reads", again
+    )
     candump, _ = _frames(tmp_path / "a.log")
     mf4, _ = _frames(tmp_path / "a.mf4")
     assert len(candump) > 100 and [f[1:] for f in mf4] == [f[1:] for f in candump]  # the same frames written

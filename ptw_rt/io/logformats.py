@@ -19,8 +19,10 @@ Every log is untrusted data, read within bounds like ``ptw_rt.io.candump`` (whos
   rest of the file", decompresses a container without limit and keeps an unfinished object across containers
   without limit, and raises ``struct.error`` on a truncated file): objects and containers at most ``MAX_BLF_OBJECT``
   bytes, compressed or not; garbage between objects is skipped to the next ``LOBJ`` signature and counted;
-* MF4 goes through python-can's ``MF4Reader`` and ``asammdf`` (the ``mf4`` extra); the declared record counts are
-  checked against the file's size before anything is read, and any error of asammdf ends the log as counted.
+* MF4 goes through python-can's ``MF4Reader`` and ``asammdf`` (the ``mf4`` extra) in a child process under memory,
+  CPU and wall-clock limits (``ptw_rt.io.mf4_sandbox``: asammdf parses the whole file in native code in its
+  constructor, and crafted files hung or aborted it); the declared record counts are checked against the file's
+  size before a record is read, and any error of asammdf, or the end of the child, ends the log as counted.
 
 Frames that are not classic data frames (remote, error, CAN FD) are counted in ``LogStats.skipped`` by kind.
 """
@@ -29,12 +31,10 @@ from __future__ import annotations
 
 import base64
 import binascii
-import gc
 import logging
 import math
 import re
 import struct
-import sys
 import zlib
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -43,6 +43,7 @@ from typing import IO, Any
 
 from ptw_rt import _deferred_imports
 from ptw_rt.errors import UserFacingError
+from ptw_rt.io import mf4_sandbox
 from ptw_rt.io.candump import (
     MAX_LOG_BYTES,
     CandumpFileError,
@@ -94,7 +95,6 @@ MAX_BLF_OBJECT = 16 << 20  # an object, a container and a container's unpacked d
 # a container's unpacked data at most this many times its packed size (CAN objects pack ~4x: python-can's writer
 # 4.2x): 200 containers of 48 kB that each unpacked to 16 MiB (340x) made a 9.8 MB file of 7e7 frames, minutes a MB
 MAX_BLF_EXPANSION = 64
-MAX_MF4_RATIO = 1100  # deflate expands at most ~1032x: more records than this allows are a lie
 _READ_CHUNK = 1 << 20
 ARRAY_BLOCK_FRAMES = 32768  # open_log_arrays: frames of a non-candump log gathered per block
 _EXAMPLES = 3
@@ -681,67 +681,23 @@ class _Mf4Reader(_MessageReader):
         return self._done
 
     def _items(self) -> Iterator[LogFrame | Problem]:
-        MF4Reader = _deferred_imports.mf4().MF4Reader  # noqa: N806
-        if _deferred_imports.mf4().asammdf is None:
-            raise LogFormatError(
-                f"{self.path}: reading MF4 needs the 'mf4' extra (asammdf is not installed): pip install 'ptw-rt[mf4]'"
-            ) from None
         size = _size(self._fh)
-        self._fh.close()  # asammdf opens the (checked, regular) file itself
-        quiet = logging.getLogger("asammdf")
-        level = quiet.level
-        quiet.setLevel(logging.CRITICAL)  # asammdf logs every oddity of a foreign file: counted here instead
+        self._fh.close()  # the child opens the (checked, regular) file itself
+
+        def declared(total: int) -> None:
+            self.total = total
+
         try:
-            reader = _quietly(lambda: MF4Reader(str(self.path)), f"{self.path}: unreadable MF4 file")
-            self.total = self._check_counts(reader, size)
-            messages = iter(reader)
-            n = 0
-            while True:
-                try:
-                    msg = next(messages)
-                except StopIteration:
+            for item in mf4_sandbox.read_messages(str(self.path), size, declared):
+                if isinstance(item, tuple):  # a read error after some records: the rest of the file is lost
+                    yield Problem(item[0], item[1], "", "malformed")
                     break
-                except Exception as exc:  # noqa: BLE001 - as above: the rest of the file is lost, counted once
-                    yield Problem(n + 1, f"MF4 read error after {n} records: {_short(exc)}", "", "malformed")
-                    break
-                n += 1
-                self._done = n
-                out = self._message(msg, n)
+                self._done += 1
+                out = self._message(item, self._done)
                 if out is not None:
                     yield out
-        finally:
-            quiet.setLevel(level)
-
-    def _check_counts(self, reader: Any, size: int) -> int:
-        total = 0
-        for i, group in enumerate(reader._mdf.groups):  # noqa: SLF001 - the declared sizes, before any read
-            cg = group.channel_group
-            records = int(cg.cycles_nr)
-            width = max(1, int(getattr(cg, "samples_byte_nr", 1)) + int(getattr(cg, "invalidation_bytes_nr", 0)))
-            if records < 0 or records * width > MAX_MF4_RATIO * max(size, 1):
-                raise LogFormatError(
-                    f"{self.path}: corrupt MF4 file (channel group {i} declares {records} records in {size} bytes)"
-                )
-            total += records
-        return total
-
-
-def _quietly(make: Any, what: str) -> Any:
-    """``make()``, any exception turned into ``LogFormatError(what (...))``. asammdf's half-built objects raise
-    again in ``__del__`` when collected ("Exception ignored in ..." with a traceback on stderr): they are
-    collected here, with that report silenced."""
-    try:
-        return make()
-    except Exception as exc:  # noqa: BLE001 - asammdf on untrusted content: any error is the file's
-        message = f"{what} ({type(exc).__name__}: {_short(exc)})"
-        exc.__traceback__ = None
-    hook = sys.unraisablehook
-    sys.unraisablehook = lambda unraisable: None
-    try:
-        gc.collect()
-    finally:
-        sys.unraisablehook = hook
-    raise LogFormatError(message)
+        except mf4_sandbox.SandboxError as exc:
+            raise LogFormatError(f"{self.path}: {exc}") from None
 
 
 _READERS: dict[str, type[_MessageReader]] = {
