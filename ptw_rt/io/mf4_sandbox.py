@@ -28,7 +28,15 @@ from dataclasses import dataclass
 from typing import IO, Any
 
 MAX_MF4_EXPANSION = 64  # the records a file declares, in bytes, at most this many times its size (as BLF's)
-MEMORY_LIMIT_BYTES = 3 << 30  # the child's address space
+# the child's address space: Python, numpy, pandas and asammdf read a small file within 768 MiB; asammdf holds a
+# group's records unpacked (a deflate bomb of 8.5 MB grew to 2.5 GB before its record count could be checked)
+MEMORY_BASE_BYTES, MEMORY_PER_FILE_BYTE = 1 << 30, 8
+
+
+def memory_limit_bytes(size: int) -> int:
+    return MEMORY_BASE_BYTES + MEMORY_PER_FILE_BYTE * size
+
+
 CPU_S_BASE, CPU_S_PER_MB = 15, 2  # the child's CPU time: 15 s plus 2 s per MB of file (asammdf: ~50 MB/s)
 WALL_S_EXTRA = 30  # the parent waits the CPU limit plus this before killing the child
 
@@ -90,7 +98,8 @@ def _short(exc: BaseException) -> str:
 
 def child(path: str, size: int, cpu: int, out: IO[bytes]) -> int:
     """Read ``path`` and stream it to ``out`` (see the module docstring), within ``cpu`` s of CPU time."""
-    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT_BYTES, MEMORY_LIMIT_BYTES))
+    memory = memory_limit_bytes(size)
+    resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
     logging.getLogger("asammdf").setLevel(logging.CRITICAL)  # every oddity of a foreign file: counted instead
     from ptw_rt import _deferred_imports
@@ -219,7 +228,7 @@ def read_messages(path: str, size: int, on_total: Any = None) -> Iterator[Messag
             elif code < 0:
                 why = f"its reader was ended by signal {-code} (a crash, or the {cpu} s CPU limit)"
             else:
-                why = f"its reader failed (exit {code}; out of memory within {MEMORY_LIMIT_BYTES >> 30} GiB?)"
+                why = f"its reader failed (exit {code}; out of memory within {memory_limit_bytes(size) >> 20} MiB?)"
             if n == 0:
                 raise SandboxError(f"unreadable MF4 file ({why})")
             yield (n + 1, f"MF4 read error after {n} records: {why}")
