@@ -230,6 +230,15 @@ def _hostile_blfs(blf_bytes: bytes, d: Path) -> dict[str, Path]:
     body = blf.LOG_CONTAINER_STRUCT.pack(blf.ZLIB_DEFLATE, len(unpacked)) + packed
     obj = blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, 16 + len(body), blf.LOG_CONTAINER) + body
     files["expansion_bomb"] = blf_bytes[:144] + obj + bytes(-len(obj) % 4) + blf_bytes[144:]
+    # an object declaring nearly 16 MiB, then 131072 containers of 32 bytes: the unfinished object was joined with
+    # every container's data, quadratic (an 8 MB file: more than 120 s; fuzzing, 2026-11-26)
+
+    def plain(payload: bytes) -> bytes:
+        body = blf.LOG_CONTAINER_STRUCT.pack(blf.NO_COMPRESSION, len(payload)) + payload
+        return blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, 16 + len(body), blf.LOG_CONTAINER) + body
+
+    spanning = blf.OBJ_HEADER_BASE_STRUCT.pack(b"LOBJ", 16, 1, (16 << 20) - 64, blf.CAN_MESSAGE) + bytes(16)
+    files["object_spanning_containers"] = blf_bytes + plain(spanning) + plain(bytes(32)) * 131072
     out = {}
     for name, data in files.items():
         (d / f"{name}.blf").write_bytes(data)
@@ -259,11 +268,13 @@ def test_hostile_blf_never_hangs_raises_or_balloons(ride, tmp_path):
             peak = tracemalloc.get_traced_memory()[1]
             tracemalloc.stop()
         assert time.perf_counter() - t0 < 20, name
+        if name == "object_spanning_containers":  # linear: 0.4 s for its 8 MB (7-70 s when quadratic)
+            assert time.perf_counter() - t0 < 5
         assert peak < 80 << 20, (name, peak)
         assert len(frames) <= n_good, name
         if name != "header_only":
             assert stats.malformed >= 1, (name, stats.rejected)
-        if name in ("zero_size_object", "huge_size_object", "zip_bomb", "expansion_bomb"):
+        if name in ("zero_size_object", "huge_size_object", "zip_bomb", "expansion_bomb", "object_spanning_containers"):
             assert len(frames) == n_good, name  # the bad object skipped, every frame after it read
         if name == "garbage_inside":
             assert len(frames) > n_good // 2, name

@@ -516,7 +516,7 @@ class _BlfReader(_MessageReader):
         self.start = blf.systemtime_to_timestamp(fields[14:22])
         fh.read(header_size - blf.FILE_HEADER_STRUCT.size)
         self._record = 0
-        self._tail = b""
+        self._forget_tail()
         self._lost = False  # a container was lost: the next one may start inside an object
         base = blf.OBJ_HEADER_BASE_STRUCT
         while True:
@@ -531,7 +531,8 @@ class _BlfReader(_MessageReader):
             if signature != b"LOBJ" or not base.size + 16 <= obj_size <= MAX_BLF_OBJECT:
                 what = "no object signature" if signature != b"LOBJ" else f"object size {obj_size}"
                 yield Problem(self._record + 1, f"{what} at byte {offset}; skipped to the next object", "", "malformed")
-                self._tail, self._lost = b"", True
+                self._forget_tail()
+                self._lost = True
                 if not self._resync(offset + 1):
                     break
                 continue
@@ -550,7 +551,8 @@ class _BlfReader(_MessageReader):
                     data = unpacker.decompress(payload, MAX_BLF_OBJECT)
                 except zlib.error as exc:
                     yield Problem(self._record + 1, f"container at byte {offset}: {exc}", "", "malformed")
-                    self._tail, self._lost = b"", True
+                    self._forget_tail()
+                    self._lost = True
                     continue
                 if unpacker.unconsumed_tail:
                     yield Problem(
@@ -559,7 +561,8 @@ class _BlfReader(_MessageReader):
                         "",
                         "malformed",
                     )
-                    self._tail, self._lost = b"", True
+                    self._forget_tail()
+                    self._lost = True
                     continue
                 if len(data) > MAX_BLF_EXPANSION * len(payload) + 4096:
                     yield Problem(
@@ -569,13 +572,15 @@ class _BlfReader(_MessageReader):
                         "",
                         "malformed",
                     )
-                    self._tail, self._lost = b"", True
+                    self._forget_tail()
+                    self._lost = True
                     continue
             elif method == blf.NO_COMPRESSION:
                 data = payload
             else:
                 yield Problem(self._record + 1, f"unknown compression {method} at byte {offset}", "", "malformed")
-                self._tail, self._lost = b"", True
+                self._forget_tail()
+                self._lost = True
                 continue
             yield from self._container(blf, data)
         if self._tail:
@@ -598,10 +603,21 @@ class _BlfReader(_MessageReader):
             carry = buf[-3:]
             offset += len(chunk)
 
+    def _forget_tail(self) -> None:
+        """No unfinished object carried into the next container."""
+        self._tail = b""  # the start of an object the container ended inside
+        self._pieces: list[bytes] = []  # the containers after it, held until the object is whole
+        self._held = 0  # bytes of the tail and the pieces
+        self._need = 0  # bytes the object needs (its declared size, or a header's)
+
     def _container(self, blf: Any, data: bytes) -> Iterator[LogFrame | Problem]:
         if self._tail:
-            data = self._tail + data
-            self._tail = b""
+            self._pieces.append(data)
+            self._held += len(data)
+            if self._held < self._need and self._held <= MAX_BLF_OBJECT:
+                return  # held, not joined: joining at every container was quadratic (8 MB of 32-byte ones: >120 s)
+            data = b"".join([self._tail, *self._pieces])
+            self._forget_tail()
         base = blf.OBJ_HEADER_BASE_STRUCT
         v1, v2 = blf.OBJ_HEADER_V1_STRUCT, blf.OBJ_HEADER_V2_STRUCT
         can_msg = blf.CAN_MSG_STRUCT
@@ -659,11 +675,15 @@ class _BlfReader(_MessageReader):
             except struct.error:
                 yield Problem(record, f"object type {obj_type} shorter than its fields", "", "malformed")
             pos = next_pos
-        self._tail = data[pos:]
-        if len(self._tail) > MAX_BLF_OBJECT:
+        tail = data[pos:]
+        if len(tail) > MAX_BLF_OBJECT:
             self._record += 1
             yield Problem(self._record, "an object spans more than 16 MiB of containers", "", "malformed")
-            self._tail = b""
+            return
+        if tail:
+            self._tail, self._held = tail, len(tail)
+            # what the object needs to be whole: its declared size once its header is here, else the header
+            self._need = max(base.unpack_from(tail)[3], base.size) if len(tail) >= base.size else base.size
 
 
 class _Mf4Reader(_MessageReader):
