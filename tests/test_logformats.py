@@ -331,6 +331,27 @@ def test_crafted_mf4_files_are_one_line_within_bounds(ride, tmp_path, monkeypatc
         assert "\n" not in str(caught.value) and time.monotonic() - t0 < 4 + mf4_sandbox.WALL_S_EXTRA, name
 
 
+@pytest.mark.parametrize("fmt", ["asc", "trc"])
+def test_garbage_lines_of_asc_and_trc_are_counted_and_their_events_are_not(ride, tmp_path, fmt):
+    """Half an ASC or TRC log replaced by garbage (or by frames stamped nan, 1e308, -1e9) read as a log of half the
+    frames, malformed 0, nothing said: python-can's parsers skip a line they do not know. Garbage is counted now;
+    an ASC event (statistics, status, an error frame) or a TRC status record is still not a problem."""
+    lines = ride[fmt].read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if ("Rx" in line and not line.startswith(";")))
+    ref, _ = _frames(ride[fmt])
+    bad = ["hello world this is garbage", "nan 1 100 Rx d 2 00 32", "1e308 1 100 Rx d 2 00 32", "-1e9 1 100 Rx d 1 0"]
+    events = (
+        [" 0.001000 1 Statistic: D 2 R 0 XD 0 XR 0 E 0 O 0 B 0.05%", " 0.002000 CAN 1 Status:chip status error active"]
+        if fmt == "asc"
+        else []
+    )
+    mixed = lines[:first] + events + [bad[k % len(bad)] if k % 2 else line for k, line in enumerate(lines[first:])]
+    path = tmp_path / f"mixed.{fmt}"
+    path.write_text("\n".join(mixed) + "\n")
+    frames, stats = _frames(path)
+    assert stats.malformed == len(lines[first:]) // 2 and len(frames) == len(ref) - stats.malformed
+
+
 def test_not_a_log_and_empty(tmp_path):
     rng = random.Random(3)
     (tmp_path / "x.asc").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))

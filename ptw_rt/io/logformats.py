@@ -415,7 +415,10 @@ class _AscReader(_TextReader):
             )
             return None
         if not ASC_MESSAGE_REGEX.match(line):
-            return None  # comments, statistics, events: not frames
+            if _ASC_EVENT.match(line) or _is_asc_header(line):
+                return None  # comments, statistics, events: not frames
+            # garbage (or a frame whose stamp is nan, inf, 1e308, -1): was skipped uncounted, half a log lost unsaid
+            raise ValueError("neither a frame, an event nor a header line")
         stamp, channel, rest = line.split(None, 2)
         kwargs: dict[str, Any] = {"timestamp": float(stamp) + reader.start_time}
         if channel == "CANFD":
@@ -427,14 +430,20 @@ class _AscReader(_TextReader):
         return reader._process_classic_can_frame(rest, kwargs)
 
 
+_ASC_EVENT = re.compile(r"\d+\.\d+\s")  # a time-stamped line: a frame, or an event (statistics, status, errors)
+
+
 def _is_asc_header(line: str) -> bool:
     s = line.strip().lower()
     return (
         not s
-        or s.startswith(("date ", "base ", "//", "begin triggerblock"))
+        or s.startswith(("date ", "base ", "//", "begin triggerblock", "end triggerblock"))
         or s.endswith("internal events logged")
         or "start of measurement" in s
     )
+
+
+_TRC_RECORD = re.compile(r"\d+\)?\s")  # every TRC record starts with its message number ("12)" in version 1.1)
 
 
 class _TrcReader(_TextReader):
@@ -450,6 +459,8 @@ class _TrcReader(_TextReader):
     def _parse(self, reader: Any, line: str) -> Any:
         if line.startswith(";"):
             return None
+        if not _TRC_RECORD.match(line):  # garbage was an "unsupported type" to python-can: skipped uncounted
+            raise ValueError("not a TRC record (no message number)")
         cols = tuple(line.split(maxsplit=reader._num_columns))
         msg = reader._parse_cols(cols)
         if msg is not None and isinstance(msg.timestamp, float) and math.isfinite(msg.timestamp):
