@@ -24,6 +24,7 @@ from typing import Any
 
 from ptw_rt.core.layout import MODE_NAMES
 from ptw_rt.errors import UserFacingError
+from ptw_rt.io.logformats import SNIFF_BYTES, sniff
 from ptw_rt.untrusted import UntrustedFileError, decode_utf8, read_bounded, short_text
 
 __all__ = ["FLEET_COLUMNS", "fleet_rows", "read_list_file", "run_jobs", "write_fleet_summary"]
@@ -66,6 +67,9 @@ def read_list_file(path: Path) -> list[Path]:
         text = decode_utf8(raw, path, what="list file", error=ListFileError)
     except UntrustedFileError as exc:  # pragma: no cover - read_bounded raises the given error type
         raise ListFileError(str(exc)) from None
+    framed, _ = sniff(raw[:SNIFF_BYTES])
+    if framed:  # each of a log's lines was a missing log: 3100 error lines and 94 s for a 20 s ride
+        raise ListFileError(f"{path}: a CAN log ({framed[0]}), not a list of logs: give it without --list")
     base = path.parent
     logs: list[Path] = []
     for number, line in enumerate(text.splitlines(), 1):
