@@ -14,7 +14,7 @@ from ptw_rt.design.discretize import interpolate, spectral_radius, zoh
 from ptw_rt.design.file import FORMAT_VERSION, DesignData, DesignFileError, load_design_for
 from ptw_rt.design.lpv_lmi import output_matrix, scheduled_gain, solve_lmis
 from ptw_rt.design.uihosmo import NEVER_DETECTABLE, design_grid
-from ptw_rt.errors import UserFacingError, output_error
+from ptw_rt.errors import EXIT_USER, UserFacingError, output_error
 from ptw_rt.model.sharp import lpv_model
 from ptw_rt.output import emit
 from ptw_rt.paths import DEFAULT_DESIGN
@@ -272,9 +272,9 @@ def run_design(args) -> int:
         if Path(path).exists():
             try:
                 data = load_design_for(settings, path, args.config)
-            except DesignFileError as exc:
+            except DesignFileError as exc:  # a design file to fix first, as `run` and `evaluate` say (exit 2)
                 print(f"ptw-rt design --check: {exc}", file=sys.stderr)
-                return 1
+                return EXIT_USER
             source = str(path)
         else:
             data, _ = make_design(settings)

@@ -38,8 +38,10 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
     commands = [
         (["analyze", "--config", c["alias_bomb_as_value"]], 2),
         (["design", "--config", c["nested_brackets"], "--out", out / "d.npz"], 2),
-        (["design", "--check", "--design-file", d["zip_bomb"]], 1),  # --check: exit 1 = "the check failed"
+        # a design file to fix first, as `run` and `evaluate` say; exit 1 is "the design is not stable"
+        (["design", "--check", "--design-file", d["zip_bomb"]], 2),
         (["simulate", "--scenario", "dlc_50", "--config", c["non_utf8"], "--out", out / "sim"], 2),
+        (["simulate", "--scenario", "dlc_50", "--config", c["dev_zero"], "--out", out / "sim"], 2),  # not "not found"
         (["evaluate", "--scenario", "dlc_50", "--config", c["dev_zero"]], 2),
         (["evaluate", "--scenario", "dlc_50", "--design-file", d["shape_lie"]], 2),
         (["report", "--scenario", "dlc_50", "--config", c["fifo"], "--out", out / "rep"], 2),
