@@ -443,10 +443,11 @@ def supervisor_stage(
     # their own to show it (random payload bytes on the encoder put the torque at 41-49 N m for 0.2 s, 5 N m true,
     # VALID: random ride set 11, `sensor_faults` seed 6666); the roll is the exception, its own uncertainty says
     corrupt = held & CORRUPT_INPUT != 0
-    if core_ok and not steer_implausible and not corrupt:
-        valid |= V_STEER
-        if attitude_consistent:  # the roll rate is the gyro less a bias the monitor doubts
-            valid |= V_ROLL_RATE
+    # the lateral filters run on the gyros too: a gyro the attitude monitor doubts leaves none of their states VALID
+    # (a yaw gyro whose sign flipped: the steer estimate 1.5 deg, v_y 0.7 m/s and the front force 252 N off, VALID
+    # for 5.5 s while the roll and the torque had dropped theirs; daemon fuzzing, 2026-11-26)
+    if core_ok and not steer_implausible and not corrupt and attitude_consistent:
+        valid |= V_STEER | V_ROLL_RATE  # the roll rate is the gyro less a bias the monitor doubts
     # roll is valid from its own uncertainty: 3 sigma within the documented tolerance, filter consistent
     roll_sd = attitude[att.OUT_ROLL_SD] if attitude[att.OUT_OK] != 0.0 else math.inf
     if (
@@ -457,14 +458,14 @@ def supervisor_stage(
         and attitude[att.OUT_REJECTED_RUN] < prm[P_MAX_REJECTED]
     ):
         valid |= V_ROLL
-    if run and run_time >= prm[P_CONVERGE_TIME] and not corrupt:  # the observers have settled, on sound input
+    if run and run_time >= prm[P_CONVERGE_TIME] and not corrupt and attitude_consistent:  # settled, on sound input
         if not steer_implausible:
             valid |= V_STEER_RATE
         # the diverse channels do not contradict it, and some tyre filter explains the data (near the grip limit
         # the linear tyres do not: the torque ran 15-43 N m off in a slide before a fall, random set 9)
         # and the attitude monitor does not doubt the roll the filters take as a measurement (m g h sin(roll) is the
         # torque balance's largest term: route 827074013 on random routes set 4 was VALID 10 N m off in an alarm)
-        if not (implausible or steer_implausible) and st[ST_TIME] >= st[ST_MODEL_DOUBTED_UNTIL] and attitude_consistent:
+        if not (implausible or steer_implausible) and st[ST_TIME] >= st[ST_MODEL_DOUBTED_UNTIL]:
             valid |= V_RIDER_TORQUE
         if not steer_implausible:  # the lateral filters run on the steer angle
             valid |= V_LAT_VEL

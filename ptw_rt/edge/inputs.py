@@ -50,6 +50,10 @@ SIGNAL_SLOTS: dict[str, tuple[tuple[str, int], ...]] = {
 }
 INPUT_NAMES = tuple(SIGNAL_SLOTS)
 assert len(INPUT_NAMES) == tr.N_INPUTS
+# inputs whose noise spans many LSBs (gyro 0.002 rad/s rms at 0.0001 rad/s, accelerometer 0.03 m/s^2 at 0.001:
+# 20-30 LSB), so a payload repeated this many times is a sensor that stopped measuring, not a value that held (the
+# encoder's count and the GPS's speed do hold); a MEMS gyro of a tenth of that noise repeats one in ~10^9 frames
+FROZEN_AFTER_FRAMES = {"IMU_Rates": 10, "IMU_Accel": 10}
 
 
 def tracker_params(codec: FrameCodec, stale_after_periods: float) -> tuple[np.ndarray, tuple[MessageLayout, ...]]:
@@ -73,6 +77,8 @@ def tracker_params(codec: FrameCodec, stale_after_periods: float) -> tuple[np.nd
         if layout.counter_signal is not None:
             p[tr.TP_COUNTER_POS + k] = layout.index[layout.counter_signal]
             p[tr.TP_MODULUS + k] = layout.counter_modulus
+        p[tr.TP_CRC_POS + k] = -1.0 if layout.crc_signal is None else layout.index[layout.crc_signal]
+        p[tr.TP_FROZEN_AFTER + k] = FROZEN_AFTER_FRAMES.get(name, 0)
         base = k * tr.MAX_SIGNALS
         for j, s in enumerate(layout.signals):
             p[tr.TP_CHECK + base + j] = 1.0 if s.can_exceed else 0.0

@@ -7,7 +7,9 @@ log (``ptw_rt.edge.drive``). The rules (``InputTracker``'s docstring) per input 
 * ``track_values``: a decoded frame (or the signals of another source, ``counted`` False): its rolling counter
   checked (skipped or repeated -> counter_jumps, REASON_COUNTER_JUMPS, the message suspect this cycle), every
   signal whose raw field can leave its DBC range checked (outside or NaN -> out_of_range, REASON_OUT_OF_RANGE,
-  the frame dropped), the signals copied into the Sample's slots, the message fresh;
+  the frame dropped), for an input whose noise spans many LSBs (the IMU's) a payload repeated ``frozen_after``
+  times not taken as fresh (frozen_frames: a stuck sensor behind a live counter goes stale), the signals copied
+  into the Sample's slots, the message fresh;
 * ``track_decode_error``: a frame that could not be decoded; ``track_unknown``: someone else's frame;
 * ``track_fill``: the Sample at the cycle's time: stale inputs (no valid frame within their timeout, a
   fresh -> stale transition counted), the IMU's age, the cycle's fresh/reason/suspect bits, which then restart.
@@ -53,6 +55,9 @@ STATE = Layout(
     counter_jumps=N_INPUTS,
     timeouts=N_INPUTS,  # fresh -> stale transitions
     counter_last=N_INPUTS,  # the last rolling counter seen (NO_COUNTER: none yet)
+    previous=N_INPUTS * MAX_SIGNALS,  # [k * MAX_SIGNALS + j]: signal j of input k's last frame
+    repeats=N_INPUTS,  # consecutive frames whose payload (counter and CRC aside) repeats the one before
+    frozen_frames=N_INPUTS,  # cumulative: frames not taken as fresh because their payload no longer changes
     fresh=1,  # MSG_* bits of this cycle
     reasons=1,  # REASON_* bits of this cycle
     suspect=1,  # MSG_* bits with a broken counter this cycle
@@ -69,6 +74,9 @@ STATE = Layout(
     TR_COUNTER_JUMPS,
     TR_TIMEOUTS,
     TR_COUNTER_LAST,
+    TR_PREVIOUS,
+    TR_REPEATS,
+    TR_FROZEN_FRAMES,
     TR_FRESH,
     TR_REASONS,
     TR_SUSPECT,
@@ -88,8 +96,23 @@ PARAMS = Layout(
     hi=N_INPUTS * MAX_SIGNALS,
     slot=N_INPUTS * MAX_SIGNALS,  # Sample index signal j is copied to, -1: none
     imu=1,  # the input whose age is the Sample's IMU age
+    frozen_after=N_INPUTS,  # repeated payloads after which a frame is not fresh (0: never, a value may hold)
+    crc_pos=N_INPUTS,  # position of its CRC among its signals, -1: none (it changes with the counter)
 )
-TP_TIMEOUT, TP_BIT, TP_COUNTER_POS, TP_MODULUS, TP_N_SIGNALS, TP_CHECK, TP_LO, TP_HI, TP_SLOT, TP_IMU = PARAMS.offsets
+(
+    TP_TIMEOUT,
+    TP_BIT,
+    TP_COUNTER_POS,
+    TP_MODULUS,
+    TP_N_SIGNALS,
+    TP_CHECK,
+    TP_LO,
+    TP_HI,
+    TP_SLOT,
+    TP_IMU,
+    TP_FROZEN_AFTER,
+    TP_CRC_POS,
+) = PARAMS.offsets
 
 # the cumulative counts of ``InputTracker.summary``, with their state offsets
 COUNTS = (
@@ -98,6 +121,7 @@ COUNTS = (
     ("out_of_range", TR_OUT_OF_RANGE),
     ("counter_jumps", TR_COUNTER_JUMPS),
     ("timeouts", TR_TIMEOUTS),
+    ("frozen_frames", TR_FROZEN_FRAMES),
 )
 
 
@@ -121,6 +145,7 @@ def track_restart(state: np.ndarray) -> None:
     state[TR_STALE_BITS] = bits
     state[TR_FRESH] = 0.0
     state[TR_REASONS] = 0.0
+    state[TR_REPEATS : TR_REPEATS + N_INPUTS] = 0.0
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -147,6 +172,20 @@ def track_values(state: np.ndarray, params: np.ndarray, k: int, t: float, values
                 state[TR_OUT_OF_RANGE + k] += 1.0
                 state[TR_REASONS] = int(state[TR_REASONS]) | REASON_OUT_OF_RANGE
                 return
+    if params[TP_FROZEN_AFTER + k] > 0.0:
+        # a sensor whose noise spans many LSBs never repeats a payload: one that does has stopped measuring behind a
+        # live counter (a hung IMU front end held roll 10 deg and the torque 25 N m off VALID: daemon fuzzing,
+        # 2026-11-26); its frames stop counting as fresh, and the input goes stale after its timeout
+        crc = int(params[TP_CRC_POS + k])
+        same = True
+        for j in range(n):
+            if j != pos and j != crc and values[j] != state[TR_PREVIOUS + base + j]:
+                same = False
+            state[TR_PREVIOUS + base + j] = values[j]
+        state[TR_REPEATS + k] = state[TR_REPEATS + k] + 1.0 if same else 0.0
+        if state[TR_REPEATS + k] >= params[TP_FROZEN_AFTER + k]:
+            state[TR_FROZEN_FRAMES + k] += 1.0
+            return
     for j in range(n):
         slot = int(params[TP_SLOT + base + j])
         if slot >= 0:
