@@ -242,7 +242,11 @@ def read_messages(path: str, size: int, on_total: Any = None) -> Iterator[Messag
 
 if __name__ == "__main__":  # the child
     _path, _size, _cpu = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-    _out = os.fdopen(sys.stdout.fileno(), "wb", buffering=1 << 16, closefd=False)
+    # the stream gets a descriptor of its own, and fd 1 goes to /dev/null: a print of asammdf's (or of its native
+    # code) on stdout would otherwise be read as items
+    _out = os.fdopen(os.dup(1), "wb", buffering=1 << 16)
+    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
+    sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - for the life of the child
     try:
         sys.exit(child(_path, _size, _cpu, _out))
     finally:
