@@ -25,16 +25,18 @@ STATE = Layout(
     bias=1,
     head=1,
     init=1,
-    refused=1,  # GPS speeds refused in a row (outside the gate)
+    refused=1,  # GPS speeds refused in a row (outside the gate) that agree with one another
+    refused_last=1,  # m/s, the last of them
     since=1,  # s since the last GPS speed taken
     ring0=1,
 )
-SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT, SPD_REFUSED, SPD_SINCE, SPD_RING0 = STATE.offsets
+SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT, SPD_REFUSED, SPD_REFUSED_LAST, SPD_SINCE, SPD_RING0 = STATE.offsets
 
 # The gate on a GPS speed's innovation: what the accelerometer-propagated speed can be off by, GPS noise and a
 # drift of the accelerometer's bias over the time since the last fix taken. A fix beyond it is not a speed the
 # vehicle can have had (one sample of 0 m/s at 20 m/s is a receiver glitch, not a 20 g stop) and is refused;
-# REACQUIRE_FIXES refused in a row mean the estimate is what is wrong (a long outage): it is re-taken from GPS.
+# REACQUIRE_FIXES refused in a row that agree with one another mean the estimate is what is wrong (a long outage):
+# it is re-taken from GPS.
 GATE_SPEED = 3.0  # m/s
 GATE_DRIFT = 1.0  # m/s^2
 REACQUIRE_FIXES = 10
@@ -111,8 +113,14 @@ def speed_step(
         past = state[SPD_RING0 + (head - lag) % n_ring]
         innovation = gps_speed - past
         share = gain
-        if abs(innovation) > GATE_SPEED + GATE_DRIFT * state[SPD_SINCE]:
+        gate = GATE_SPEED + GATE_DRIFT * state[SPD_SINCE]
+        if abs(innovation) > gate:
+            # refused fixes count towards re-taking the speed only while they agree with one another: a receiver
+            # sending garbage never does (random 0-100 m/s at 10 Hz re-took the speed at 54.6 m/s for 27.8 true)
+            if state[SPD_REFUSED] > 0.0 and abs(gps_speed - state[SPD_REFUSED_LAST]) > gate:
+                state[SPD_REFUSED] = 0.0
             state[SPD_REFUSED] += 1.0
+            state[SPD_REFUSED_LAST] = gps_speed
             share = 0.0  # refused: the prediction goes on
             if state[SPD_REFUSED] >= REACQUIRE_FIXES:  # re-taken from GPS whole, with the bias learned so far
                 share = 1.0
