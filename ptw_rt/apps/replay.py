@@ -123,11 +123,10 @@ class _Feed:
             standard = ~frames.extended
             kept = np.flatnonzero(standard)
             self.skipped += len(frames) - kept.size
-            if kept.size != len(frames):
-                self.extended_inputs += int(np.isin(frames.ids[frames.extended], self.input_ids).sum())
             for jump in frames.jumps:  # the index among the frames kept (a 29-bit one: the next kept)
                 self._jumps[offset + int(np.searchsorted(kept, jump.index))] = jump[1:]
             if kept.size != len(frames):
+                self.extended_inputs += int(np.isin(frames.ids[frames.extended], self.input_ids).sum())
                 frames = FrameArrays(*(a[kept] for a in frames[:5]), frames.channel, [])
             yield decode_block(self.tracker, frames.times, frames.ids, frames.lengths, frames.data, offset)
             offset += len(frames)
