@@ -202,7 +202,13 @@ def excerpt(value: Any, limit: int = EXCERPT_CHARS) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+# the ASCII control characters ``str.split`` leaves in place (ESC, BEL, NUL ...) as escapes: an ESC sequence in a
+# message is a terminal command to whoever reads the log
+_CONTROL_ESCAPES = {c: f"\\x{c:02x}" for c in (*range(32), 127)}
+
+
 def short_text(text: str, limit: int = 120) -> str:
-    """A message fragment (e.g. a parser's problem text) on one line, ASCII-escaped, at most ``limit`` chars."""
-    text = " ".join(str(text).split()).encode("ascii", "backslashreplace").decode("ascii")
+    """A message fragment (e.g. a parser's problem text) on one line, ASCII-escaped (control characters too), at
+    most ``limit`` chars."""
+    text = " ".join(str(text).split()).encode("ascii", "backslashreplace").decode("ascii").translate(_CONTROL_ESCAPES)
     return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -352,6 +352,32 @@ def test_garbage_lines_of_asc_and_trc_are_counted_and_their_events_are_not(ride,
     assert stats.malformed == len(lines[first:]) // 2 and len(frames) == len(ref) - stats.malformed
 
 
+def test_the_mf4_readers_message_reaches_the_user_on_one_line(monkeypatch):
+    """The child's refusal is asammdf's exception text: a newline (or any control character) in it split the one-line
+    refusal. Whatever the child sends is made one ASCII line by the parent."""
+    from ptw_rt.io import mf4_sandbox
+
+    text = "unreadable MF4 file (KeyError: 'a\nb\x1b[2J\u00e9')".encode()
+
+    class Child:
+        stdout = io.BytesIO(b"E" + struct.pack("<H", len(text)) + text)
+
+        def poll(self):
+            return 0
+
+        def wait(self):
+            return 0
+
+        def kill(self):
+            pass
+
+    monkeypatch.setattr(mf4_sandbox.subprocess, "Popen", lambda *a, **kw: Child())
+    with pytest.raises(mf4_sandbox.SandboxError) as caught:
+        list(mf4_sandbox.read_messages("x.mf4", 100))
+    message = str(caught.value)
+    assert message.startswith("unreadable MF4 file (KeyError:") and message.isascii() and message.isprintable()
+
+
 def test_not_a_log_and_empty(tmp_path):
     rng = random.Random(3)
     (tmp_path / "x.asc").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))

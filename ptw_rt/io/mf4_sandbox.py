@@ -27,6 +27,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import IO, Any
 
+from ptw_rt.untrusted import short_text
+
 MAX_MF4_EXPANSION = 64  # the records a file declares, in bytes, at most this many times its size (as BLF's)
 # the child's address space: Python, numpy, pandas and asammdf read a small file within 768 MiB; asammdf holds a
 # group's records unpacked (a deflate bomb of 8.5 MB grew to 2.5 GB before its record count could be checked)
@@ -212,7 +214,8 @@ def read_messages(path: str, size: int, on_total: Any = None) -> Iterator[Messag
                 elif kind in (b"P", b"E"):
                     record = _RECORD.unpack(_read_exact(stream, _RECORD.size))[0] if kind == b"P" else 0
                     (length,) = _TEXT.unpack(_read_exact(stream, _TEXT.size))
-                    text = _read_exact(stream, min(length, MAX_TEXT)).decode("utf-8", "replace")
+                    # one line, ASCII, whatever asammdf's message held (a newline in it would split the refusal)
+                    text = short_text(_read_exact(stream, min(length, MAX_TEXT)).decode("utf-8", "replace"), MAX_TEXT)
                     if kind == b"E":
                         raise SandboxError(text)
                     yield (record, text)

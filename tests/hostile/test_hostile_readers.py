@@ -19,7 +19,7 @@ from ptw_rt.io.state_file import load_state, restore_state, save_state, stiffnes
 from ptw_rt.paths import DEFAULT_DESIGN
 from ptw_rt.schema import ConfigError
 from ptw_rt.settings import load_settings
-from ptw_rt.untrusted import check_nesting, excerpt
+from ptw_rt.untrusted import check_nesting, excerpt, short_text
 
 from .conftest import clean_log_lines, state_doc
 
@@ -426,6 +426,12 @@ def test_excerpt_is_short_and_escaped():
     for value in ("x" * 10**6, "a\nb\x00\u202e" * 100, deep, list(range(10**5)), {str(i): i for i in range(10**4)}):
         text = excerpt(value)
         assert len(text) <= 60 and "\n" not in text and text.isascii()
+
+
+def test_short_text_escapes_control_characters():
+    """An ESC sequence in a parser's message (asammdf's, a log line's) was passed to the terminal reading it."""
+    text = short_text("a\nb\x1b[2J\x07\x00\x7f\u00e9 c")
+    assert text == "a b\\x1b[2J\\x07\\x00\\x7f\\xe9 c" and text.isprintable()
 
 
 def test_check_nesting_ignores_brackets_in_strings():
