@@ -130,11 +130,14 @@ def _speeds(text: str) -> list[float]:
 
 
 def _file_name(text: str) -> Path:
-    """A file name argument that names a file: ``--state-file ""`` was the current directory (warned about as a
-    directory the daemon could not read)."""
-    if not text:
-        raise argparse.ArgumentTypeError("an empty file name")
-    return Path(text)
+    """A file name argument held to the rule of ``runtime.state_file`` (``schema.check_path_text``): ``--state-file ""``
+    was the current directory (warned about as a directory the daemon could not read), a NUL a traceback."""
+    from ptw_rt.schema import ConfigError, check_path_text  # only when the option is given: yaml is slow to import
+
+    try:
+        return Path(check_path_text("--state-file", text))  # the rule runtime.state_file is held to
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--state-file: ")) from None
 
 
 class _Parser(argparse.ArgumentParser):

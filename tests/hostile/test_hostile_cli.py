@@ -51,6 +51,7 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
         (["run", "--check-config", "--design-file", d["fifo"]], 2),
         (["run", "--check-config", "--config", c["state_file_nul"]], 2),  # was exit 0, then a traceback at run
         (["run", "--check-config", "--state-file", ""], 2),  # was the current directory
+        (["run", "--check-config", "--state-file", "s" * 5000], 2),  # runtime.state_file's bound, on the command line
         (["replay", log, "--out", out / "r.log", "--config", c["directory"]], 2),
         (["replay", log, "--out", out / "r.log", "--design-file", d["size_lie"]], 2),
         (["replay", hostile_logs["dev_zero"], "--out", out / "z.log"], 2),
