@@ -33,7 +33,7 @@ def test_steady_turn_gives_the_coordinated_roll(settings, design):
     b = att.STAGE.alone(settings, design)
     u, r = 20.0, 0.05
     roll = math.atan(u * r / G)
-    speed = spd.OUTPUTS.vector(u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
     for k in range(1000):
         t = 0.01 * k
         course_new = k % 10 == 0 and k >= 10
@@ -51,13 +51,19 @@ def test_not_ok_before_the_first_sound_sample(settings, design):
     b = att.STAGE.alone(settings, design)
     inputs = _inputs(0.0, 0.0, 0.0, 0.0, -G)
     inputs[inp.OUT_RATES_OK] = 0.0
-    att.attitude_stage(b.state, b.params, b.outputs, inputs, spd.OUTPUTS.vector(u=0.0, known=0.0))
+    att.attitude_stage(
+        b.state,
+        b.params,
+        b.outputs,
+        inputs,
+        spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=0.0, known=0.0),
+    )
     assert b.outputs[att.OUT_OK] == 0.0
 
 
 def test_standstill_reads_the_gyro_biases(settings, design):
     b = att.STAGE.alone(settings, design)
-    speed = spd.OUTPUTS.vector(u=0.0, known=1.0)  # a fix says: standing
+    speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=0.0, known=1.0)  # a fix says: standing
     for _ in range(3000):
         att.attitude_stage(b.state, b.params, b.outputs, _inputs(0.004, -0.002, 0.003, 0.0, -G), speed)
     assert b.outputs[att.OUT_BP] == pytest.approx(0.004, abs=2e-4)
@@ -102,7 +108,7 @@ def test_a_burst_of_corrupt_input_reopens_the_biases_when_it_ends(settings, desi
     b = att.STAGE.alone(settings, design)
     u, r = 20.0, 0.05
     roll = math.atan(u * r / G)
-    speed = spd.OUTPUTS.vector(u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
     inputs = _inputs(0.0, r * math.sin(roll), r * math.cos(roll), 0.0, -G / math.cos(roll))
 
     def ride(cycles, reasons):

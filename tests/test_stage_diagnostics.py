@@ -13,7 +13,7 @@ from ptw_rt.core import speed as spd
 
 def _step(b, cond, u=20.0):
     inputs = inp.OUTPUTS.vector({"accel_ok": 1.0, "core_ok": 1.0}, strict=False)
-    speed = spd.OUTPUTS.vector(u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
     dia.diagnostics_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, cond)
     return b.outputs
 

@@ -16,7 +16,7 @@ from ptw_rt.core import tyre_bank as tb
 
 def _step(b, cond, accel=1.0, attitude_ok=1.0):
     inputs = inp.OUTPUTS.vector({"accel_trusted": accel}, strict=False)
-    speed = spd.OUTPUTS.vector(u=20.0, known=1.0)
+    speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
     attitude = att.OUTPUTS.vector({"ok": attitude_ok}, strict=False)
     lat.lateral_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, attitude, cond)
     return b.outputs

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from ptw_rt.core import inputs as inp
@@ -33,3 +34,59 @@ def test_speed_from_gps_and_accelerometer(settings, design):
     u = b.outputs[spd.OUT_U]
     spd.speed_stage(b.state, b.params, b.outputs, inputs)
     assert b.outputs[spd.OUT_U] == pytest.approx(u - dt * b.state[spd.SPD_BIAS])
+
+
+def _run_fixes(b, inputs, speeds, accel=0.0):
+    """One fix every 10 cycles from ``speeds``; the stage's outputs after each cycle."""
+    outs = []
+    for k in range(10 * len(speeds)):
+        new = k % 10 == 0
+        inputs[inp.OUT_RAW + inp.RAW_AX] = accel
+        inputs[inp.OUT_RAW + inp.RAW_GPS_SPEED] = speeds[k // 10] if new else 0.0
+        inputs[inp.OUT_GPS_OK] = 1.0 if new else 0.0
+        spd.speed_stage(b.state, b.params, b.outputs, inputs)
+        outs.append(b.outputs.copy())
+    return np.array(outs)
+
+
+def test_a_receiver_whose_fixes_are_mostly_refused_is_doubted_and_the_gps_lost(settings, design):
+    """Garbage speeds (random 0-100 m/s, counters right) at 20 m/s: within a second the receiver is doubted, none
+    of its fixes is taken (the speed dead-reckons), and after gps_hold the GPS counts as lost: the estimator then
+    raises REASON_GPS_LOST (conditioning) and the attitude filter widens the speed's uncertainty and drops the
+    course. A healthy receiver's glitch does none of this, nor does a long outage that the fixes end."""
+    b = spd.STAGE.alone(settings, design)
+    inputs = inp.OUTPUTS.vector({"accel_ok": 1.0}, strict=False)
+    rng = np.random.default_rng(11)
+    garbage = rng.uniform(0.0, 100.0, 600)
+    out = _run_fixes(b, inputs, np.concatenate([np.full(50, 20.0), garbage]))
+    t = np.arange(len(out)) * b.params[spd.P_DT]
+    after = t >= 5.0
+    assert np.all(np.abs(out[after, spd.OUT_U] - 20.0) < 0.5)
+    doubted = out[:, spd.OUT_GPS_DOUBTED] != 0.0
+    assert not doubted[~after].any() and doubted[t >= 6.0].all()
+    lost = out[:, spd.OUT_GPS_LOST] != 0.0
+    hold = b.params[spd.P_GPS_HOLD]
+    assert not lost[t < 4.89 + hold].any() and lost[t >= 7.0 + hold].all()  # the last fix taken: 4.9 s
+    # sane again: ten fixes that agree re-take it, and it is believed at once
+    out = _run_fixes(b, inputs, np.full(30, 12.0))
+    assert out[-1, spd.OUT_U] == pytest.approx(12.0, abs=0.1)
+    assert out[-1, spd.OUT_GPS_DOUBTED] == 0.0 and out[-1, spd.OUT_GPS_LOST] == 0.0
+
+
+def test_a_healthy_receivers_glitches_and_outages_are_not_doubt(settings, design):
+    b = spd.STAGE.alone(settings, design)
+    inputs = inp.OUTPUTS.vector({"accel_ok": 1.0}, strict=False)
+    speeds = np.full(300, 20.0)
+    speeds[[60, 61, 90, 150, 151, 152]] = 0.0  # glitches, up to three in a row
+    out = _run_fixes(b, inputs, speeds)
+    assert not out[:, spd.OUT_GPS_DOUBTED].any() and not out[:, spd.OUT_GPS_LOST].any()
+    assert np.all(np.abs(out[10:, spd.OUT_U] - 20.0) < 0.05)
+    # a 20 s outage with the accelerometer reading 0.5 m/s^2 too much: the speed is 10 m/s off when fixes return
+    inputs[inp.OUT_GPS_OK] = 0.0
+    for _ in range(2000):
+        inputs[inp.OUT_RAW + inp.RAW_AX] = 0.5
+        spd.speed_stage(b.state, b.params, b.outputs, inputs)
+    assert b.outputs[spd.OUT_GPS_LOST] == 1.0
+    out = _run_fixes(b, inputs, np.full(20, 20.0))
+    assert out[-1, spd.OUT_U] == pytest.approx(20.0, abs=0.1)
+    assert out[-1, spd.OUT_GPS_DOUBTED] == 0.0 and out[-1, spd.OUT_GPS_LOST] == 0.0

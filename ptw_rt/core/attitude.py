@@ -743,15 +743,17 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
     u = speed[spd.OUT_U]
     speed_known = speed[spd.OUT_KNOWN] != 0.0
     reasons_now = int(inputs[inp.OUT_REASONS])
+    gps_believed = inputs[inp.OUT_GPS_LOST] == 0.0 and speed[spd.OUT_GPS_LOST] == 0.0
     standstill = (
         speed_known
-        and inputs[inp.OUT_GPS_LOST] == 0.0
+        and gps_believed
         and u < prm[A_CAL_SPEED]
         and reasons_now & ~REASON_SPEED_LOW == 0
         and abs(raw[inp.RAW_P] - st[ST_X + X_BP]) < prm[A_CAL_MAX_RATE]
         and abs(raw[inp.RAW_R] - st[ST_X + X_BR]) < prm[A_CAL_MAX_RATE]
     )
-    speed_sd = 0.1 + 0.5 * min(inputs[inp.OUT_GPS_AGE], 10.0)
+    # the age of the GPS speed the speed filter last took: a refused or doubted fix corrects nothing
+    speed_sd = 0.1 + 0.5 * min(max(inputs[inp.OUT_GPS_AGE], speed[spd.OUT_GPS_AGE]), 10.0)
     force = math.sqrt(raw[inp.RAW_AX] ** 2 + raw[inp.RAW_AY] ** 2 + raw[inp.RAW_AZ] ** 2)
     accel_plausible = ACCEL_TRUSTED_MIN_G * prm[A_G] <= force <= ACCEL_TRUSTED_MAX_G * prm[A_G]
     attitude_step(
@@ -768,7 +770,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         inputs[inp.OUT_RATES_OK] != 0.0,
         inputs[inp.OUT_ACCEL_TRUSTED] != 0.0 and accel_plausible,
         inputs[inp.OUT_COURSE],
-        inputs[inp.OUT_COURSE_NEW] != 0.0,
+        inputs[inp.OUT_COURSE_NEW] != 0.0 and speed[spd.OUT_GPS_DOUBTED] == 0.0,  # a doubted receiver's course too
         standstill,
     )
     if reasons_now & _CORRUPT_INPUT:

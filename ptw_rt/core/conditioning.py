@@ -33,7 +33,7 @@ from numba import njit
 from ptw_rt.core import attitude as att
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
-from ptw_rt.core.layout import INPUT_FAULTS, REASON_SPEED_LOW, S_IMU_AGE
+from ptw_rt.core.layout import INPUT_FAULTS, REASON_GPS_LOST, REASON_SPEED_LOW, S_IMU_AGE
 from ptw_rt.core.params import lever_arm_coefficients
 from ptw_rt.core.stage import Layout, Stage
 
@@ -260,6 +260,8 @@ def conditioning_stage(
     delta -= st[ST_STEER_ZERO_SHIFT]
     if speed_low:
         reasons |= REASON_SPEED_LOW
+    if speed[spd.OUT_GPS_LOST] != 0.0:  # fixes arrive but none is taken (a doubted receiver): dead reckoning
+        reasons |= REASON_GPS_LOST
     run = inputs[inp.OUT_CORE_OK] != 0.0 and not speed_low
 
     # the published roll: the attitude filter's at every speed (kinematics do not depend on the tyres); without

@@ -28,9 +28,20 @@ STATE = Layout(
     refused=1,  # GPS speeds refused in a row (outside the gate) that agree with one another
     refused_last=1,  # m/s, the last of them
     since=1,  # s since the last GPS speed taken
+    refused_share=1,  # share of the recent fixes refused (exponentially weighted over ~DOUBT_FIXES fixes)
     ring0=1,
 )
-SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT, SPD_REFUSED, SPD_REFUSED_LAST, SPD_SINCE, SPD_RING0 = STATE.offsets
+(
+    SPD_U,
+    SPD_BIAS,
+    SPD_HEAD,
+    SPD_INIT,
+    SPD_REFUSED,
+    SPD_REFUSED_LAST,
+    SPD_SINCE,
+    SPD_REFUSED_SHARE,
+    SPD_RING0,
+) = STATE.offsets
 
 # The gate on a GPS speed's innovation: what the accelerometer-propagated speed can be off by, GPS noise and a
 # drift of the accelerometer's bias over the time since the last fix taken. A fix beyond it is not a speed the
@@ -39,7 +50,16 @@ SPD_U, SPD_BIAS, SPD_HEAD, SPD_INIT, SPD_REFUSED, SPD_REFUSED_LAST, SPD_SINCE, S
 # it is re-taken from GPS.
 GATE_SPEED = 3.0  # m/s
 GATE_DRIFT = 1.0  # m/s^2
+GATE_DRIFT_MAX_S = 5.0  # s: the gate stops widening here (a longer outage's error beyond it is re-taken as above; a
+# gate that kept widening let a doubted receiver's garbage back in once it spanned most of its range)
 REACQUIRE_FIXES = 10
+# A receiver most of whose recent fixes are refused is not believed at all: the few of its fixes that fall inside
+# the gate are chance, not measurements (random 0-100 m/s at 10 Hz, counters and checksums right: the in-gate ones
+# walked the speed 6 m/s off over 57 s). Its fixes are then not taken and the speed dead-reckons as in an outage,
+# until the share of refusals falls back (a healthy receiver's glitch is one fix in many) or REACQUIRE_FIXES
+# refused fixes agree (a receiver that is right after all).
+DOUBT_FIXES = 10.0  # fixes: the memory of the refusal share
+DOUBT_SHARE = 0.5  # beyond this share of refusals the receiver is doubted (7 refusals in a row from none)
 
 PARAMS = Layout(
     "P_",
@@ -47,15 +67,19 @@ PARAMS = Layout(
     gain=1,  # share of a GPS innovation applied to the speed
     bias_gain=1,  # ... to the accelerometer bias
     latency_samples=1,  # GPS latency in cycles
+    gps_hold=1,  # s without a GPS speed taken before the GPS counts as lost (estimator.supervisor.gps_hold_time)
 )
-P_DT, P_GAIN, P_BIAS_GAIN, P_LATENCY_SAMPLES = PARAMS.offsets
+P_DT, P_GAIN, P_BIAS_GAIN, P_LATENCY_SAMPLES, P_GPS_HOLD = PARAMS.offsets
 
 OUTPUTS = Layout(
     "OUT_",
     u=1,  # m/s, forward speed (0 until the first fix)
     known=1,  # 1 once the filter has had its first fix
+    gps_age=1,  # s since a GPS speed was last taken (refused and doubted fixes are not)
+    gps_doubted=1,  # 1 while most recent fixes are refused: the receiver's speeds (and courses) are not believed
+    gps_lost=1,  # 1 once gps_age exceeds gps_hold: the speed is dead reckoning
 )
-OUT_U, OUT_KNOWN = OUTPUTS.offsets
+OUT_U, OUT_KNOWN, OUT_GPS_AGE, OUT_GPS_DOUBTED, OUT_GPS_LOST = OUTPUTS.offsets
 
 
 def new_speed_state(latency_samples: int) -> np.ndarray:
@@ -70,6 +94,7 @@ def build_params(settings, design) -> np.ndarray:
         gain=sens.speed_filter_gain,
         bias_gain=sens.speed_bias_gain,
         latency_samples=round(sens.gps_latency / dt),
+        gps_hold=settings.estimator.gps_hold_time,
     )
 
 
@@ -113,8 +138,10 @@ def speed_step(
         past = state[SPD_RING0 + (head - lag) % n_ring]
         innovation = gps_speed - past
         share = gain
-        gate = GATE_SPEED + GATE_DRIFT * state[SPD_SINCE]
-        if abs(innovation) > gate:
+        gate = GATE_SPEED + GATE_DRIFT * min(state[SPD_SINCE], GATE_DRIFT_MAX_S)
+        refused = abs(innovation) > gate
+        state[SPD_REFUSED_SHARE] += ((1.0 if refused else 0.0) - state[SPD_REFUSED_SHARE]) / DOUBT_FIXES
+        if refused:
             # refused fixes count towards re-taking the speed only while they agree with one another: a receiver
             # sending garbage never does (random 0-100 m/s at 10 Hz re-took the speed at 54.6 m/s for 27.8 true)
             if state[SPD_REFUSED] > 0.0 and abs(gps_speed - state[SPD_REFUSED_LAST]) > gate:
@@ -124,6 +151,9 @@ def speed_step(
             share = 0.0  # refused: the prediction goes on
             if state[SPD_REFUSED] >= REACQUIRE_FIXES:  # re-taken from GPS whole, with the bias learned so far
                 share = 1.0
+                state[SPD_REFUSED_SHARE] = 0.0  # ten fixes that agree: a receiver that is right after all
+        elif state[SPD_REFUSED_SHARE] > DOUBT_SHARE:
+            share = 0.0  # inside the gate by chance: a doubted receiver's fixes are not taken
         if share != 0.0:
             state[SPD_REFUSED] = 0.0
             state[SPD_SINCE] = 0.0
@@ -159,6 +189,9 @@ def speed_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.nda
         int(prm[P_LATENCY_SAMPLES]),
     )
     out[OUT_KNOWN] = 1.0 if st[SPD_INIT] != 0.0 else 0.0
+    out[OUT_GPS_AGE] = st[SPD_SINCE]
+    out[OUT_GPS_DOUBTED] = 1.0 if st[SPD_REFUSED_SHARE] > DOUBT_SHARE else 0.0
+    out[OUT_GPS_LOST] = 1.0 if st[SPD_INIT] != 0.0 and st[SPD_SINCE] > prm[P_GPS_HOLD] else 0.0
 
 
 STAGE = Stage(

@@ -185,6 +185,7 @@ def stiffness_stage(
         allow = (
             inputs[inp.OUT_ACCEL_OK] != 0.0
             and inputs[inp.OUT_GPS_LOST] == 0.0
+            and speed[spd.OUT_GPS_LOST] == 0.0
             and lateral[lat.OUT_RUN_TIME] > prm[P_CONVERGE_TIME]
             and int(cond[cnd.OUT_REASONS]) == 0
             and consistent
