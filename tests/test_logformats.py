@@ -381,7 +381,7 @@ def test_the_mf4_readers_message_reaches_the_user_on_one_line(monkeypatch):
 def test_not_a_log_and_empty(tmp_path):
     rng = random.Random(3)
     (tmp_path / "x.asc").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))
-    with pytest.raises(NotACanLogError, match=r"x.asc: not a CAN log \(no candump/ASC/BLF/TRC/CSV/MF4 frame"):
+    with pytest.raises(NotACanLogError, match=r"x.asc: not a CAN log \(no candump/ASC/BLF/TRC/CSV/MF4/SQLite frame"):
         detect_format(tmp_path / "x.asc")
     (tmp_path / "e.log").write_bytes(b"")
     with pytest.raises(EmptyLogError, match="empty log"):
@@ -409,7 +409,7 @@ def test_cli_refuses_not_a_log_and_empty_in_one_line(ride, tmp_path):
     (tmp_path / "empty.log").write_bytes(b"")
     shutil.copy(ride["blf"], tmp_path / "ok.blf")
     cases = [
-        (["replay", "x.log", "--out", "o.log"], "ptw-rt replay: x.log: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 "),
+        (["replay", "x.log", "--out", "o.log"], "ptw-rt replay: x.log: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4/"),
         (["replay", "empty.log", "--out", "o.log"], "ptw-rt replay: empty.log: empty log (0 bytes)"),
         (["replay", "ok.blf", "--out", "o.txt"], "ptw-rt replay: o.txt: unknown log format '.txt'"),
     ]
@@ -430,7 +430,7 @@ def test_directory_replay_takes_every_format_and_lists_failures(ride, tmp_path):
     proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "2", "--no-progress"], tmp_path)
     # a bad log of a directory run is a partial failure (exit 1, EXIT_PARTIAL), not a bad command (2)
     assert proc.returncode == 1, proc.stderr
-    junk = f"{src / 'junk.asc'}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 frame in the first 64 KiB)"
+    junk = f"{src / 'junk.asc'}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4/SQLite frame in the first 64 KiB)"
     assert [line for line in proc.stderr.splitlines() if line.startswith("error: ")] == [f"error: {junk}"]
     assert "1 of 4 logs failed" in proc.stderr, proc.stderr
     summaries = [json.loads(line) for line in proc.stdout.splitlines()]
@@ -468,3 +468,203 @@ def test_the_command_line_loads_mf4_support_only_for_an_mf4_log(ride, tmp_path):
     candump, _ = _frames(tmp_path / "a.log")
     mf4, _ = _frames(tmp_path / "a.mf4")
     assert len(candump) > 100 and [f[1:] for f in mf4] == [f[1:] for f in candump]  # the same frames written
+
+
+# ---------------------------------------------------------------------- gzip-compressed logs
+
+
+@pytest.mark.parametrize("fmt", ["candump", "asc", "blf", "trc", "csv"])
+def test_a_gzip_compressed_log_replays_like_its_original(ride, replays, fmt, tmp_path):
+    """Loggers rotate and compress their files; python-can reads ``*.EXT.gz``. Same frames, same replay."""
+    import gzip
+
+    packed = tmp_path / (ride[fmt].name + ".gz")
+    packed.write_bytes(gzip.compress(ride[fmt].read_bytes()))
+    assert detect_format(packed)[0] == fmt
+    ref, _ = _frames(ride[fmt])
+    frames, stats = open_log(packed)
+    got = [next(frames)]
+    assert 0.0 < stats.fraction <= 1.0  # the progress counts the compressed file's bytes, not the data's
+    got += list(frames)
+    assert stats.format == fmt and stats.malformed == 0 and got == ref
+    if fmt != "asc":  # the ASC's own clock (above)
+        log, csv = tmp_path / "o.log", tmp_path / "o.csv"
+        replay_log(packed, log, csv, DEFAULT_CONFIG)
+        assert log.read_bytes() == replays[fmt][0].read_bytes() and csv.read_bytes() == replays[fmt][1].read_bytes()
+
+
+def test_a_truncated_or_corrupt_gzip_log_gives_what_it_holds(ride, tmp_path, caplog):
+    """A logger killed mid-write leaves a stream without its end; a bad CRC or garbage after the stream: the frames
+    before are read, the rest is said lost in one warning."""
+    import gzip
+
+    whole = gzip.compress(ride["candump"].read_bytes())
+    ref, _ = _frames(ride["candump"])
+    cases = {
+        "cut.log.gz": whole[: len(whole) // 2],
+        "crc.log.gz": whole[:-8] + bytes(b ^ 0xFF for b in whole[-8:-4]) + whole[-4:],
+        "tail.log.gz": whole + b"garbage after the stream",
+    }
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        caplog.clear()
+        got, stats = _frames(tmp_path / name)
+        assert 0 < len(got) <= len(ref) and got == ref[: len(got)], name
+        assert name == "cut.log.gz" or len(got) == len(ref)  # a CRC or trailing garbage loses no frame
+        assert [r.message for r in caplog.records if "compressed stream ends early" in r.message], name
+
+
+def test_a_gzip_bomb_is_refused_within_bounds(tmp_path):
+    """A few hundred kB that inflate to gigabytes: refused once the data exceed 16 times the file, in one line,
+    without holding the data."""
+    import gzip
+
+    from ptw_rt.io.candump import CandumpFileError
+    from ptw_rt.io.compressed import MAX_EXPANSION
+
+    bomb = tmp_path / "bomb.log.gz"
+    line = b"(1700000000.000000) can0 300#0000000000000000\n"
+    bomb.write_bytes(gzip.compress(line * (200_000_000 // len(line)), 9))
+    assert bomb.stat().st_size * MAX_EXPANSION < 200_000_000
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    with pytest.raises(CandumpFileError, match="decompresses beyond .* a gzip bomb"):
+        for _ in open_log(bomb)[0]:
+            pass
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert time.perf_counter() - t0 < 30.0 and peak < 64 << 20
+
+
+def test_gzip_logs_in_a_directory_and_their_outputs(ride, tmp_path):
+    """A directory of ``.log.gz`` / ``.blf.gz`` logs replays like one of plain logs; outputs are written
+    uncompressed, named without ``.gz``; an output named ``.gz`` is refused; MF4 inside gzip is one line."""
+    import gzip
+
+    src = tmp_path / "in"
+    src.mkdir()
+    for fmt in ("candump", "blf"):
+        (src / (ride[fmt].name + ".gz")).write_bytes(gzip.compress(ride[fmt].read_bytes()))
+    (src / "truth.csv.gz").write_bytes(gzip.compress(b"time,roll\n0.0,0.1\n"))  # not a CAN CSV: not taken
+    proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "1", "--no-progress"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    outs = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert outs == sorted(["fleet.csv", "fleet.parquet", ride["blf"].name, ride["candump"].name])
+    (tmp_path / "r.mf4.gz").write_bytes(gzip.compress(ride["mf4"].read_bytes()))
+    cases = [
+        (["replay", src / (ride["candump"].name + ".gz"), "--out", "o.log.gz"], "outputs are not compressed"),
+        (["replay", "r.mf4.gz", "--out", "o.log"], "an MF4 log inside gzip is not read"),
+    ]
+    for args, text in cases:
+        proc = _cli(args, tmp_path)
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and text in proc.stderr, proc.stderr
+
+
+# ---------------------------------------------------------------------- SQLite (python-can's .db)
+
+
+def test_sqlite_logs_in_and_out(ride, replays, tmp_path):
+    """python-can's SQLite log: written here (python-can's reader reads it back frame for frame), read here (the
+    candump original's frames and estimates). python-can's own writer is not used: its thread stops before it has
+    written what is queued (18 600 frames logged, 501 rows in the file; python-can 4.6)."""
+    from ptw_rt.io.sqlite_log import SqliteLogWriter
+
+    ref, _ = _frames(ride["candump"])
+    db = tmp_path / "ride.db"
+    with SqliteLogWriter(db) as writer:
+        for ts, frame_id, data, extended in ref:
+            writer.write(ts, frame_id, data, extended=extended)
+    back = [(m.timestamp, m.arbitration_id, bytes(m.data), m.is_extended_id) for m in can.LogReader(str(db))]
+    assert back == ref
+    assert detect_format(db)[0] == "db"
+    got, stats = _frames(db)
+    assert stats.format == "db" and stats.malformed == 0 and got == ref
+    log, csv = tmp_path / "o.log", tmp_path / "o.csv"
+    replay_log(db, log, csv, DEFAULT_CONFIG)
+    assert (
+        log.read_bytes() == replays["candump"][0].read_bytes()
+        and csv.read_bytes() == replays["candump"][1].read_bytes()
+    )
+    # --out .db: a replay's estimates as rows python-can reads (an existing file is replaced, not appended to)
+    out = tmp_path / "est.db"
+    out.write_bytes(db.read_bytes())
+    replay_log(ride["candump"], out, None, DEFAULT_CONFIG)
+    est, _ = _frames(replays["candump"][0])  # candump's stamps are rounded to the microsecond
+    rows = [(m.timestamp, m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(out))]
+    assert [r[1:] for r in rows] == [e[1:3] for e in est]
+    assert max(abs(r[0] - e[0]) for r, e in zip(rows, est, strict=True)) < 1e-6
+
+
+def _sqlite(path: Path, statements: list[str], rows: list[tuple] = ()) -> Path:
+    import sqlite3
+
+    conn = sqlite3.connect(path)
+    for statement in statements:
+        conn.execute(statement)
+    if rows:
+        conn.executemany("INSERT INTO messages VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+    conn.commit()
+    conn.close()
+    return path
+
+
+_TABLE = (
+    "CREATE TABLE messages (ts REAL, arbitration_id INTEGER, extended INTEGER, remote INTEGER, error INTEGER, "
+    "dlc INTEGER, data BLOB)"
+)
+
+
+def test_hostile_sqlite_logs_are_one_line_or_counted(ride, tmp_path, monkeypatch):
+    """An SQLite file is a program as much as data: a view whose recursive query never ends, a blob of megabytes,
+    text where numbers belong, corrupt pages, a table of another shape. Each is one line (LogFormatError) or its
+    bad rows counted, in bounded time, and nothing is written to the file."""
+    import random
+
+    from ptw_rt.io import sqlite_log
+
+    good = [(1700000000.0 + k * 0.01, 0x300 + k % 3, 0, 0, 0, 8, bytes(8)) for k in range(20)]
+    endless = (
+        "CREATE VIEW messages AS WITH RECURSIVE r(x) AS (SELECT 1 UNION ALL SELECT x + 1 FROM r) SELECT x AS ts, "
+        "768 AS arbitration_id, 0 AS extended, 0 AS remote, 0 AS error, 8 AS dlc, zeroblob(8) AS data FROM r"
+    )
+    refused = {
+        "view.db": ([endless], [], "is a view, not a table"),
+        "other_table.db": (["CREATE TABLE other (a)"], [], "without python-can's table 'messages'"),
+        "other_columns.db": (["CREATE TABLE messages (a, b, c, d, e, f, g)"], [], "is not python-can's (no column ts"),
+    }
+    for name, (statements, rows, text) in refused.items():
+        path = _sqlite(tmp_path / name, statements, rows)
+        before = path.read_bytes()
+        with pytest.raises(LogFormatError, match=re.escape(text)):
+            _frames(path)
+        assert path.read_bytes() == before, name  # read-only, immutable: not even a journal
+    (tmp_path / "header_only.db").write_bytes(sqlite_log.MAGIC + bytes(100))
+    with pytest.raises(LogFormatError, match="unreadable SQLite file"):
+        _frames(tmp_path / "header_only.db")
+    # bad rows are counted, the good ones read
+    typed = good[:5] + [("abc", 0x300, 0, 0, 0, 8, bytes(8)), (1.0, "x", 0, 0, 0, 8, bytes(8))] + good[5:]
+    got, stats = _frames(_sqlite(tmp_path / "types.db", [_TABLE], typed))
+    assert len(got) == len(good) and stats.malformed == 2
+    # a value beyond the bound ends the log there, said; the rows before it are read (but the last: Python's sqlite3
+    # cursor steps one row ahead, and the step that fails is the one that would have returned it)
+    big = good + [(1700000001.0, 0x300, 0, 0, 0, 8, bytes(10 << 20))] + good
+    got, stats = _frames(_sqlite(tmp_path / "blob.db", [_TABLE], big))
+    assert len(got) == len(good) - 1 and stats.malformed == 1 and "rest of the file is not read" in stats.examples[0]
+    # corrupt pages: one line, or the rows before them
+    path = _sqlite(
+        tmp_path / "corrupt.db",
+        [_TABLE],
+        [(1700000000.0 + k * 1e-3, 0x300, 0, 0, 0, 8, bytes(8)) for k in range(20000)],
+    )
+    data = bytearray(path.read_bytes())
+    rng = random.Random(1)
+    for i in range(4096, len(data), 997):
+        data[i] = rng.randrange(256)
+    path.write_bytes(data)
+    got, stats = _frames(path)
+    assert stats.malformed >= 1
+    # the time budget: a slow file is cut off, said
+    monkeypatch.setattr(sqlite_log, "TIME_BUDGET_S", 0.0)
+    monkeypatch.setattr(sqlite_log, "TIME_PER_MB_S", 0.0)
+    got, stats = _frames(_sqlite(tmp_path / "slow.db", [_TABLE], good * 500))
+    assert stats.malformed == 1 and "the time budget is spent" in stats.examples[0]

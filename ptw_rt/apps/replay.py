@@ -63,11 +63,14 @@ from ptw_rt.errors import EXIT_OK, EXIT_PARTIAL, OutputError, UserFacingError, o
 from ptw_rt.io.candump import FrameArrays
 from ptw_rt.io.logformats import (
     EXTENSIONS,
+    GZIP_SUFFIX,
     EmptyLogError,
     LogFormatError,
     detect_format,
+    format_of_extension,
     open_log_arrays,
     open_writer,
+    uncompressed_name,
     writer_format,
 )
 from ptw_rt.parallel import worker_count
@@ -446,9 +449,10 @@ def _collect_logs(
 
     A directory is searched recursively (at most MAX_TREE_DEPTH levels, symbolic links to directories not
     followed, `exclude` -- the output directory -- skipped): every file with a log extension
-    (``ptw_rt.io.logformats.EXTENSIONS``) is a log (one that is not fails on its own), except ``.csv`` files,
-    which are taken only when they are python-can CAN CSV: a ride's truth and estimates CSV files sit beside its
-    log. Its outputs mirror the tree below it; a file given directly keeps its name. With `several` inputs (more
+    (``ptw_rt.io.logformats.EXTENSIONS``, or one of them and ``.gz``) is a log (one that is not fails on its own),
+    except ``.csv`` files, which are taken only when they are python-can CAN CSV: a ride's truth and estimates CSV
+    files sit beside its log. Its outputs mirror the tree below it; a file given directly keeps its name (a
+    compressed one's without ``.gz``: outputs are written uncompressed). With `several` inputs (more
     than one, or a --list file) a path that is missing, unreadable or not a regular file is kept as a log that
     fails on its own, like any bad log of a fleet run (its `error:` line, exit 1): one stale line of a list of
     thousands must not stop the others."""
@@ -466,9 +470,11 @@ def _collect_logs(
             raise UserFacingError(f"cannot read CAN log {p}: {exc.strerror or exc}") from None
         if stat.S_ISDIR(st.st_mode):
             any_dir = True
-            found = [(q, q.relative_to(p)) for q in _logs_below(p, exclude)]
+            found = [(q, q.relative_to(p).with_name(uncompressed_name(q))) for q in _logs_below(p, exclude)]
             if not found:
-                raise UserFacingError(f"no CAN logs in directory {p} ({', '.join(EXTENSIONS)})")
+                raise UserFacingError(
+                    f"no CAN logs in directory {p} ({', '.join(EXTENSIONS)}, each also {GZIP_SUFFIX})"
+                )
             files.extend(found)
         elif stat.S_ISREG(st.st_mode) or several:
             files.append((p, _output_name(p)))
@@ -478,9 +484,10 @@ def _collect_logs(
 
 
 def _output_name(p: Path) -> Path:
-    """A log given directly keeps its name for its output (and with it its format); one whose extension names no
-    log format (a list's `ride.bin`, a FIFO) gets candump's `.log` added."""
-    return Path(p.name if p.suffix.lower() in EXTENSIONS else p.name + ".log")
+    """A log given directly keeps its name for its output (and with it its format; a compressed one's without
+    ``.gz``); one whose extension names no log format (a list's `ride.bin`, a FIFO) gets candump's `.log` added."""
+    name = uncompressed_name(p)
+    return Path(name if format_of_extension(name) is not None else name + ".log")
 
 
 def _logs_below(top: Path, exclude: Path | None) -> list[Path]:
@@ -495,7 +502,8 @@ def _logs_below(top: Path, exclude: Path | None) -> list[Path]:
             )
             for name in sorted(names):
                 q = here / name
-                if q.suffix.lower() in EXTENSIONS and q.is_file() and (q.suffix.lower() != ".csv" or _is_can_csv(q)):
+                fmt = format_of_extension(q)
+                if fmt is not None and q.is_file() and (fmt != "csv" or _is_can_csv(q)):
                     found.append(q)
     except OSError as exc:
         raise UserFacingError(f"cannot list directory {exc.filename or top}: {exc.strerror or exc}") from None

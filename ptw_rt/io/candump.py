@@ -41,8 +41,8 @@ from typing import IO, Any, NamedTuple
 import numpy as np
 
 from ptw_rt.errors import UserFacingError
+from ptw_rt.io import compressed
 from ptw_rt.io.candump_scan import POW10, scan_plain
-from ptw_rt.untrusted import open_binary
 
 __all__ = [
     "MAX_LINE_CHARS",
@@ -754,7 +754,9 @@ class CandumpReader(TimeRule):
             path = Path(source)
             name = str(path)
             try:
-                self._fh = open_binary(path, max_bytes=max_bytes, what="candump log", error=CandumpFileError)
+                self._fh = compressed.open_log_file(
+                    path, max_bytes=max_bytes, what="candump log", error=CandumpFileError
+                )
             except CandumpFileError as exc:
                 if str(exc).endswith("not found"):
                     raise FileNotFoundError(f"candump log not found: {path}") from None
@@ -771,7 +773,7 @@ class CandumpReader(TimeRule):
     def position(self) -> int:
         """Bytes read so far (0 for a stream): for a progress bar."""
         try:
-            return self._fh.tell() if self._fh is not None and not self._fh.closed else 0
+            return compressed.position(self._fh) if self._fh is not None and not self._fh.closed else 0
         except (OSError, ValueError):
             return 0
 

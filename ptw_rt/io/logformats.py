@@ -1,4 +1,6 @@
-"""Every CAN log format python-can reads, in and out: candump ``-L``, ASC, BLF, TRC, CSV and MF4 (ASAM MDF 4).
+"""Every CAN log format python-can reads, in and out: candump ``-L``, ASC, BLF, TRC, CSV, MF4 (ASAM MDF 4) and
+SQLite (``.db``, ``ptw_rt.io.sqlite_log``); in,
+each of them gzip-compressed too (``ride.log.gz``: ``ptw_rt.io.compressed``, bounded; MF4 excepted).
 
     open_log(path)            -> (iterator of (timestamp, id, data, extended), LogStats)
     open_writer(path, ...)    -> a writer of the format the extension names (candump: our own, byte-identical)
@@ -43,7 +45,7 @@ from typing import IO, Any
 
 from ptw_rt import _deferred_imports
 from ptw_rt.errors import UserFacingError
-from ptw_rt.io import mf4_sandbox
+from ptw_rt.io import compressed, mf4_sandbox, sqlite_log
 from ptw_rt.io.candump import (
     MAX_LOG_BYTES,
     CandumpFileError,
@@ -57,11 +59,11 @@ from ptw_rt.io.candump import (
     text_blocks,
     timestamp_problem,
 )
-from ptw_rt.untrusted import open_binary
 
 __all__ = [
     "EXTENSIONS",
     "FORMATS",
+    "GZIP_SUFFIX",
     "SNIFF_BYTES",
     "EmptyLogError",
     "LogFormatError",
@@ -73,13 +75,14 @@ __all__ = [
     "open_log",
     "open_writer",
     "sniff",
+    "uncompressed_name",
     "writer_format",
 ]
 
 log = logging.getLogger(__name__)
 
 # format -> name in messages; in the order the sniffer tries them
-FORMATS = {"candump": "candump", "asc": "ASC", "blf": "BLF", "trc": "TRC", "csv": "CSV", "mf4": "MF4"}
+FORMATS = {"candump": "candump", "asc": "ASC", "blf": "BLF", "trc": "TRC", "csv": "CSV", "mf4": "MF4", "db": "SQLite"}
 EXTENSIONS = {
     ".log": "candump",
     ".asc": "asc",
@@ -88,7 +91,9 @@ EXTENSIONS = {
     ".csv": "csv",
     ".mf4": "mf4",
     ".mdf": "mf4",
+    ".db": "db",
 }
+GZIP_SUFFIX = ".gz"  # any format above, gzip-compressed (read only: ``ptw_rt.io.compressed``)
 SNIFF_BYTES = 64 << 10
 MAX_TEXT_LINE = 1024  # ASC/TRC lines of CAN FD frames reach ~400 characters; ours are < 100
 MAX_BLF_OBJECT = 16 << 20  # an object, a container and a container's unpacked data (writers use 128 KiB)
@@ -114,8 +119,15 @@ class EmptyLogError(LogFormatError):
 
 
 def format_of_extension(path: str | Path) -> str | None:
-    """The format an extension names, None for none or an unknown one."""
-    return EXTENSIONS.get(Path(path).suffix.lower())
+    """The format an extension names, None for none or an unknown one; a compressed log's (``ride.asc.gz``) is
+    the one before ``.gz``."""
+    return EXTENSIONS.get(Path(uncompressed_name(path)).suffix.lower())
+
+
+def uncompressed_name(path: str | Path) -> str:
+    """The name of a log without its ``.gz`` (``ride.asc.gz`` -> ``ride.asc``): the name of its output."""
+    name = Path(path).name
+    return name[: -len(GZIP_SUFFIX)] if name.lower().endswith(GZIP_SUFFIX) else name
 
 
 # ---------------------------------------------------------------------- sniffing
@@ -142,6 +154,8 @@ def sniff(head: bytes) -> tuple[list[str], list[str]]:
         framed.append("blf")
     if head[:8] in (b"MDF     ", b"UnFinMF ") and head[8:10] == b"4.":
         framed.append("mf4")
+    if head[: len(sqlite_log.MAGIC)] == sqlite_log.MAGIC:
+        framed.append("db")
     if framed:
         return framed, headed
     for fmt, frame_re, head_test in (
@@ -161,11 +175,11 @@ def detect_format(path: str | Path, max_bytes: int = MAX_LOG_BYTES, *, warn: boo
     """(format, size in bytes) of the log at ``path``: the extension's format if the content shows it, else the
     format the content shows (``warn``: say so in a warning). Raises ``CandumpFileError`` (not a regular file,
     too large, unreadable), ``EmptyLogError`` (0 bytes) or ``NotACanLogError``."""
-    with open_binary(path, max_bytes=max_bytes, what="CAN log", error=CandumpFileError) as fh:
+    with compressed.open_log_file(path, max_bytes=max_bytes, what="CAN log", error=CandumpFileError) as fh:
         head = fh.read(SNIFF_BYTES)
-        size = _size(fh)
+        size = _size(fh)  # the file's: a compressed log's progress counts compressed bytes
     if not head:
-        raise EmptyLogError(f"{path}: empty log (0 bytes)")
+        raise EmptyLogError(f"{path}: empty log ({'nothing decompressed' if size else '0 bytes'})")
     framed, headed = sniff(head)
     by_ext = format_of_extension(path)
     for found in (framed, headed):
@@ -265,14 +279,14 @@ class _MessageReader(TimeRule):
 
     def __init__(self, path: Path, max_bytes: int, **rules: Any) -> None:
         self.path = path
-        self._fh = open_binary(path, max_bytes=max_bytes, what="CAN log", error=CandumpFileError)
+        self._fh = compressed.open_log_file(path, max_bytes=max_bytes, what="CAN log", error=CandumpFileError)
         self.skipped: dict[str, int] = {}
         super().__init__(str(path), **rules)
 
     @property
     def position(self) -> int:
         try:
-            return self._fh.tell() if not self._fh.closed else 0
+            return compressed.position(self._fh) if not self._fh.closed else 0
         except (OSError, ValueError):
             return 0
 
@@ -713,7 +727,12 @@ class _Mf4Reader(_MessageReader):
 
     def _items(self) -> Iterator[LogFrame | Problem]:
         size = _size(self._fh)
+        gzipped = compressed.is_compressed(self._fh)
         self._fh.close()  # the child opens the (checked, regular) file itself
+        if gzipped:  # asammdf reads the file itself, at random offsets
+            raise LogFormatError(
+                f"{self.path}: an MF4 log inside gzip is not read: decompress it first (MF4 packs its own data)"
+            )
 
         def declared(total: int) -> None:
             self.total = total
@@ -731,12 +750,56 @@ class _Mf4Reader(_MessageReader):
             raise LogFormatError(f"{self.path}: {exc}") from None
 
 
+class _SqliteReader(_MessageReader):
+    """python-can's SQLite log (``ptw_rt.io.sqlite_log``: read-only, a table only, values and time bounded)."""
+
+    unit = "SQLite row"
+
+    def __init__(self, path: Path, max_bytes: int, **rules: Any) -> None:
+        super().__init__(path, max_bytes, **rules)
+        self.total = 0
+        self._done = 0
+
+    @property
+    def position(self) -> int:
+        return self._done
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        size = _size(self._fh)
+        gzipped = compressed.is_compressed(self._fh)
+        self._fh.close()  # SQLite opens the (checked, regular) file itself
+        if gzipped:
+            raise LogFormatError(f"{self.path}: an SQLite log inside gzip is not read: decompress it first")
+
+        def declared(total: int) -> None:
+            self.total = total
+
+        try:
+            for n, item in sqlite_log.rows(self.path, size, declared):
+                self._done = n
+                if isinstance(item, str):
+                    yield Problem(n, item, "", "malformed")
+                    continue
+                ts, frame_id, extended, remote, error, data = item
+                if error:
+                    self._skip("error")
+                elif remote:
+                    self._skip("remote")
+                elif len(data) > 8:
+                    self._skip("fd")
+                else:
+                    yield _frame(ts, 0, frame_id, data, n, extended)
+        except sqlite_log.SqliteLogError as exc:
+            raise LogFormatError(f"{self.path}: {exc}") from None
+
+
 _READERS: dict[str, type[_MessageReader]] = {
     "asc": _AscReader,
     "trc": _TrcReader,
     "csv": _CsvReader,
     "blf": _BlfReader,
     "mf4": _Mf4Reader,
+    "db": _SqliteReader,
 }
 
 
@@ -970,6 +1033,10 @@ def writer_format(path: str | Path) -> str:
     path = Path(path)
     if not path.suffix:
         return "candump"
+    if path.name.lower().endswith(GZIP_SUFFIX):
+        raise LogFormatError(
+            f"{path}: outputs are not compressed: name it without {GZIP_SUFFIX} (and compress it after)"
+        )
     fmt = format_of_extension(path)
     if fmt is None:
         known = ", ".join(f"{ext} ({FORMATS[f]})" for ext, f in EXTENSIONS.items())
@@ -986,4 +1053,6 @@ def open_writer(path: str | Path, channel: str = "vcan0") -> Any:
     fmt = writer_format(path)
     if fmt == "candump":
         return CandumpWriter(path, channel=channel)
+    if fmt == "db":
+        return sqlite_log.SqliteLogWriter(path)  # an OSError like every writer's (replay: exit 74)
     return _PycanWriter(path, fmt)

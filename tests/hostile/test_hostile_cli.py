@@ -122,7 +122,8 @@ def test_replay_of_hostile_logs_rejects_lines_and_finishes(hostile_logs, tmp_pat
     errors = sorted(line for line in proc.stderr.splitlines() if line.startswith("error: "))
     assert errors == [
         f"error: {src / 'empty.log'}: empty log (0 bytes)",
-        f"error: {src / 'random_bytes.log'}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4 frame in the first 64 KiB)",
+        f"error: {src / 'random_bytes.log'}: not a CAN log "
+        "(no candump/ASC/BLF/TRC/CSV/MF4/SQLite frame in the first 64 KiB)",
     ], proc.stderr[-2000:]
     summaries = {json.loads(line)["log"].rsplit("/", 1)[-1][:-4]: json.loads(line) for line in proc.stdout.splitlines()}
     assert set(summaries) == set(names)

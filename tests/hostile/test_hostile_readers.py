@@ -397,6 +397,27 @@ def test_log_content_rejected_per_line_and_counted(name, hostile_logs, caplog):
         assert "\n" not in message and len(message) < len(str(hostile_logs[name])) + MAX_LINE_CHARS + 200
 
 
+@pytest.mark.parametrize("name", sorted(LOG_CONTENT))
+def test_a_gzip_compressed_hostile_log_reads_as_its_plain_self(name, hostile_logs, tmp_path):
+    """The same hostile lines inside gzip (``ptw_rt.io.compressed``): the same frames and the same counts; or, for a
+    log that packs beyond the bound (a 3 MB line of one digit: 200 times), the one-line refusal of a gzip bomb."""
+    import gzip
+
+    from ptw_rt.io.compressed import EXPANSION_SLACK, MAX_EXPANSION
+
+    packed = tmp_path / f"{name}.log.gz"
+    data = hostile_logs[name].read_bytes()
+    packed.write_bytes(gzip.compress(data, 1))
+    if len(data) > MAX_EXPANSION * packed.stat().st_size + EXPANSION_SLACK:
+        _refused(lambda: list(read_log(packed)), UserFacingError, memory=True)
+        return
+    plain, compressed = read_log(hostile_logs[name], max_warnings=0), read_log(packed, max_warnings=0)
+    with Measured(name in MEMORY_THREATS) as m:
+        assert list(compressed) == list(plain)
+    m.check()
+    assert compressed.rejected == plain.rejected and compressed.discontinuities == plain.discontinuities
+
+
 def test_log_problems_are_bounded(tmp_path):
     path = tmp_path / "junk.log"
     path.write_bytes(b"junk\n" * 200_000)
