@@ -668,3 +668,18 @@ def test_hostile_sqlite_logs_are_one_line_or_counted(ride, tmp_path, monkeypatch
     monkeypatch.setattr(sqlite_log, "TIME_PER_MB_S", 0.0)
     got, stats = _frames(_sqlite(tmp_path / "slow.db", [_TABLE], good * 500))
     assert stats.malformed == 1 and "the time budget is spent" in stats.examples[0]
+
+
+def test_replay_to_a_pipe_for_cantools_decode(ride, replays, tmp_path):
+    """``ptw-rt replay ride.log --out /dev/stdout | python -m cantools decode dbc/ptw_rt.dbc``: the log on stdout
+    (a pipe with its reader), the JSON summary on stderr; a FIFO nobody reads is one line, not a hang."""
+    proc = _cli(["replay", ride["candump"], "--out", "/dev/stdout", "--no-progress"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == replays["candump"][0].read_text()
+    assert json.loads(proc.stderr.strip().splitlines()[-1])["out"] == "/dev/stdout"
+    fifo = tmp_path / "nobody"
+    os.mkfifo(fifo)
+    t0 = time.monotonic()
+    proc = _cli(["replay", ride["candump"], "--out", fifo, "--no-progress"], tmp_path)
+    assert proc.returncode == 74 and "is a FIFO (named pipe) with no reader" in proc.stderr, proc.stderr
+    assert proc.stderr.count("\n") == 1 and time.monotonic() - t0 < 60

@@ -180,14 +180,36 @@ def _prepare_output(path: Path, what: str) -> None:
     try:
         if path.is_dir():
             raise ReplayOutputError(f"{what} {path} is a directory")
-        if path.is_fifo():  # opening it for writing waits for a reader: replay hung with nothing said
-            raise ReplayOutputError(f"{what} {path} is a FIFO (named pipe); write to a file")
+        if path.is_fifo() and not _has_reader(path):  # opening it would wait for one: replay hung, nothing said
+            raise ReplayOutputError(f"{what} {path} is a FIFO (named pipe) with no reader; write to a file")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except (FileExistsError, NotADirectoryError):
             raise ReplayOutputError(f"cannot write {path}: a parent of it is not a directory") from None
     except OSError as exc:
         raise _output_error(path, exc) from None
+
+
+def _has_reader(fifo: Path) -> bool:
+    """A pipe someone reads (``--out /dev/stdout | cantools decode ...``) opens at once; one nobody reads would
+    block the open (ENXIO without blocking)."""
+    try:
+        fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+    except OSError:
+        return False
+    os.close(fd)
+    return True
+
+
+def _is_stdout(path: Path | None) -> bool:
+    """Whether ``path`` is this process's standard output (``--out /dev/stdout``): the summaries then go to stderr,
+    not into the log."""
+    if path is None:
+        return False
+    try:
+        return os.path.samestat(os.stat(path), os.fstat(1))
+    except (OSError, ValueError):
+        return False
 
 
 def _open_output(path: Path, what: str) -> IO[str]:
@@ -636,16 +658,17 @@ def _max_gap(args) -> float:
 def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) -> int:
     """``ptw-rt replay``: one log -> ``--out`` is the output file; several logs or a directory -> ``--out`` is a
     directory (same file names), processed in parallel. One JSON summary line per log on stdout (``error``:
-    the one-line reason a log was not replayed).
+    the one-line reason a log was not replayed); on stderr when an output is stdout (``--out /dev/stdout``).
 
     Exit codes (``ptw_rt.errors``): 0 every log replayed; 1 several logs and some failed (the others were
     replayed); 2 nothing replayed, a problem with the inputs, configuration or arguments; 74 an output cannot be
     written (one log; with several, a log whose output fails is one of the failures).
     """
-    out = out or sys.stdout
     err = err or sys.stderr
     max_gap = _max_gap(args)
     jobs = _plan(args)
+    if out is None:  # the summaries on stdout, unless an output is stdout: a pipe to `cantools decode` (README)
+        out = err if any(_is_stdout(target) for _, log, csv in jobs for target in (log, csv)) else sys.stdout
     config = Path(args.config)
     design_file = args.design_file
     # check config, design file and DBC once, here, and compile/load the jitted step before forking workers
