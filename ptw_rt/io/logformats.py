@@ -711,10 +711,9 @@ class _BlfReader(_MessageReader):
             self._need = max(base.unpack_from(tail)[3], base.size) if len(tail) >= base.size else base.size
 
 
-class _Mf4Reader(_MessageReader):
-    """ASAM MDF 4 through python-can's ``MF4Reader`` (``asammdf``: the ``mf4`` extra)."""
-
-    unit = "MF4 record"
+class _RecordReader(_MessageReader):
+    """A format another library reads from the path itself, at random offsets (MF4: asammdf; SQLite): the file
+    is checked as every log is, then closed; progress counts records (``total`` once the library declares it)."""
 
     def __init__(self, path: Path, max_bytes: int, **rules: Any) -> None:
         super().__init__(path, max_bytes, **rules)
@@ -725,20 +724,32 @@ class _Mf4Reader(_MessageReader):
     def position(self) -> int:
         return self._done
 
-    def _items(self) -> Iterator[LogFrame | Problem]:
+    def _declared(self, total: int) -> None:
+        self.total = total
+
+    def _hand_over(self) -> int:
+        """Close the checked file for the library to open by its path; its size. A compressed one is refused:
+        the library cannot read a stream."""
         size = _size(self._fh)
         gzipped = compressed.is_compressed(self._fh)
-        self._fh.close()  # the child opens the (checked, regular) file itself
-        if gzipped:  # asammdf reads the file itself, at random offsets
+        self._fh.close()
+        if gzipped:
+            name = self.unit.split()[0]
             raise LogFormatError(
-                f"{self.path}: an MF4 log inside gzip is not read: decompress it first (MF4 packs its own data)"
+                f"{self.path}: {name} inside gzip is not read (read at random offsets): decompress it first"
             )
+        return size
 
-        def declared(total: int) -> None:
-            self.total = total
 
+class _Mf4Reader(_RecordReader):
+    """ASAM MDF 4 through python-can's ``MF4Reader`` (``asammdf``: the ``mf4`` extra)."""
+
+    unit = "MF4 record"
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        size = self._hand_over()  # the child opens the (checked, regular) file itself
         try:
-            for item in mf4_sandbox.read_messages(str(self.path), size, declared):
+            for item in mf4_sandbox.read_messages(str(self.path), size, self._declared):
                 if isinstance(item, tuple):  # a read error after some records: the rest of the file is lost
                     yield Problem(item[0], item[1], "", "malformed")
                     break
@@ -750,32 +761,15 @@ class _Mf4Reader(_MessageReader):
             raise LogFormatError(f"{self.path}: {exc}") from None
 
 
-class _SqliteReader(_MessageReader):
+class _SqliteReader(_RecordReader):
     """python-can's SQLite log (``ptw_rt.io.sqlite_log``: read-only, a table only, values and time bounded)."""
 
     unit = "SQLite row"
 
-    def __init__(self, path: Path, max_bytes: int, **rules: Any) -> None:
-        super().__init__(path, max_bytes, **rules)
-        self.total = 0
-        self._done = 0
-
-    @property
-    def position(self) -> int:
-        return self._done
-
     def _items(self) -> Iterator[LogFrame | Problem]:
-        size = _size(self._fh)
-        gzipped = compressed.is_compressed(self._fh)
-        self._fh.close()  # SQLite opens the (checked, regular) file itself
-        if gzipped:
-            raise LogFormatError(f"{self.path}: an SQLite log inside gzip is not read: decompress it first")
-
-        def declared(total: int) -> None:
-            self.total = total
-
+        size = self._hand_over()  # SQLite opens the (checked, regular) file itself
         try:
-            for n, item in sqlite_log.rows(self.path, size, declared):
+            for n, item in sqlite_log.rows(self.path, size, self._declared):
                 self._done = n
                 if isinstance(item, str):
                     yield Problem(n, item, "", "malformed")
