@@ -381,7 +381,8 @@ def test_the_mf4_readers_message_reaches_the_user_on_one_line(monkeypatch):
 def test_not_a_log_and_empty(tmp_path):
     rng = random.Random(3)
     (tmp_path / "x.asc").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))
-    with pytest.raises(NotACanLogError, match=r"x.asc: not a CAN log \(no candump/ASC/BLF/TRC/CSV/MF4/SQLite frame"):
+    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t"
+    with pytest.raises(NotACanLogError, match=rf"x.asc: not a CAN log \(no {names} frame"):
         detect_format(tmp_path / "x.asc")
     (tmp_path / "e.log").write_bytes(b"")
     with pytest.raises(EmptyLogError, match="empty log"):
@@ -411,7 +412,8 @@ def test_cli_refuses_not_a_log_and_empty_in_one_line(ride, tmp_path):
     cases = [
         (["replay", "x.log", "--out", "o.log"], "ptw-rt replay: x.log: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4/"),
         (["replay", "empty.log", "--out", "o.log"], "ptw-rt replay: empty.log: empty log (0 bytes)"),
-        (["replay", "ok.blf", "--out", "o.txt"], "ptw-rt replay: o.txt: unknown log format '.txt'"),
+        (["replay", "ok.blf", "--out", "o.bin"], "ptw-rt replay: o.bin: unknown log format '.bin'"),
+        (["replay", "ok.blf", "--out", "o.txt"], "ptw-rt replay: o.txt: candump's screen output is read, not written"),
     ]
     for args, start in cases:
         proc = _cli(args, tmp_path)
@@ -430,7 +432,8 @@ def test_directory_replay_takes_every_format_and_lists_failures(ride, tmp_path):
     proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "2", "--no-progress"], tmp_path)
     # a bad log of a directory run is a partial failure (exit 1, EXIT_PARTIAL), not a bad command (2)
     assert proc.returncode == 1, proc.stderr
-    junk = f"{src / 'junk.asc'}: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4/SQLite frame in the first 64 KiB)"
+    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t"
+    junk = f"{src / 'junk.asc'}: not a CAN log (no {names} frame in the first 64 KiB)"
     assert [line for line in proc.stderr.splitlines() if line.startswith("error: ")] == [f"error: {junk}"]
     assert "1 of 4 logs failed" in proc.stderr, proc.stderr
     summaries = [json.loads(line) for line in proc.stdout.splitlines()]
@@ -683,3 +686,54 @@ def test_replay_to_a_pipe_for_cantools_decode(ride, replays, tmp_path):
     proc = _cli(["replay", ride["candump"], "--out", fifo, "--no-progress"], tmp_path)
     assert proc.returncode == 74 and "is a FIFO (named pipe) with no reader" in proc.stderr, proc.stderr
     assert proc.stderr.count("\n") == 1 and time.monotonic() - t0 < 60
+
+
+# ---------------------------------------------------------------------- candump's screen output (-ta, -tA, -tz)
+
+
+def _candump_t(frames, path: Path, stamp, extra: str = "") -> Path:
+    with open(path, "w") as f:
+        for ts, frame_id, data, extended in frames:
+            ident = f"{frame_id:08X}" if extended else f"{frame_id:03X}"
+            f.write(f" ({stamp(ts)})  can0  {extra}{ident}   [{len(data)}]  {' '.join(f'{b:02X}' for b in data)}\n")
+    return path
+
+
+def test_candump_screen_output_with_time_stamps_replays_like_the_log(ride, replays, tmp_path):
+    """What `candump -ta can0 > ride.txt` (or -tA, with -x) leaves: the same frames and the same replay; without
+    time stamps (`candump can0`) there is nothing to clock a replay by: one line."""
+    import datetime
+
+    ref, _ = _frames(ride["candump"])
+    epoch = _candump_t(ref, tmp_path / "ta.txt", lambda ts: f"{ts:.6f}")
+
+    def local(ts: float) -> str:
+        d = datetime.datetime.fromtimestamp(ts)
+        return f"{d:%Y-%m-%d %H:%M:%S}.{d.microsecond:06d}"
+
+    dated = _candump_t(ref, tmp_path / "tA.txt", local, extra="RX - -  ")
+    for path in (epoch, dated):
+        assert detect_format(path)[0] == "candump_t"
+        got, stats = _frames(path)
+        assert stats.malformed == 0 and [f[1:] for f in got] == [f[1:] for f in ref]
+        assert max(abs(a[0] - b[0]) for a, b in zip(got, ref, strict=True)) < 2e-6
+    log = tmp_path / "o.log"
+    replay_log(epoch, log, None, DEFAULT_CONFIG)
+    assert log.read_bytes() == replays["candump"][0].read_bytes()
+    bad = epoch.read_text().splitlines()
+    bad[3] = bad[3][:-3]  # a byte fewer than its [n]
+    bad[5] = " (12:00)  can0  300   [8]  00"
+    (tmp_path / "bad.txt").write_text("\n".join(bad) + "\n")
+    got, stats = _frames(tmp_path / "bad.txt")
+    assert len(got) == len(ref) - 2 and stats.malformed == 2
+    (tmp_path / "notime.txt").write_text("".join(line.split(")", 1)[1] + "\n" for line in bad[6:]))
+    with pytest.raises(LogFormatError, match="candump output without time stamps"):
+        detect_format(tmp_path / "notime.txt")
+    (tmp_path / "readme.txt").write_text("notes about the ride\n")
+    src = tmp_path / "dir"
+    src.mkdir()
+    shutil.copy(epoch, src / "ride.txt")
+    shutil.copy(tmp_path / "readme.txt", src / "readme.txt")  # not a log: not taken from a directory
+    proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "1", "--no-progress"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["ride.log"]  # one log: no fleet summary

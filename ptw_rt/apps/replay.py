@@ -70,7 +70,7 @@ from ptw_rt.io.logformats import (
     format_of_extension,
     open_log_arrays,
     open_writer,
-    uncompressed_name,
+    output_name,
     writer_format,
 )
 from ptw_rt.parallel import worker_count
@@ -472,12 +472,12 @@ def _collect_logs(
     A directory is searched recursively (at most MAX_TREE_DEPTH levels, symbolic links to directories not
     followed, `exclude` -- the output directory -- skipped): every file with a log extension
     (``ptw_rt.io.logformats.EXTENSIONS``, or one of them and ``.gz``) is a log (one that is not fails on its own),
-    except ``.csv`` files, which are taken only when they are python-can CAN CSV: a ride's truth and estimates CSV
-    files sit beside its log. Its outputs mirror the tree below it; a file given directly keeps its name (a
-    compressed one's without ``.gz``: outputs are written uncompressed). With `several` inputs (more
-    than one, or a --list file) a path that is missing, unreadable or not a regular file is kept as a log that
-    fails on its own, like any bad log of a fleet run (its `error:` line, exit 1): one stale line of a list of
-    thousands must not stop the others."""
+    except ``.csv`` and ``.txt`` files, which are taken only when they are python-can CAN CSV or candump's screen
+    output with time stamps: a ride's truth and estimates CSV files sit beside its log. Its outputs mirror the
+    tree below it; a file given directly keeps its name (a compressed one's without ``.gz``: outputs are written
+    uncompressed). With `several` inputs (more than one, or a --list file) a path that is missing, unreadable or
+    not a regular file is kept as a log that fails on its own, like any bad log of a fleet run (its `error:`
+    line, exit 1): one stale line of a list of thousands must not stop the others."""
     files: list[tuple[Path, Path]] = []
     any_dir = False
     for p in paths:
@@ -492,7 +492,7 @@ def _collect_logs(
             raise UserFacingError(f"cannot read CAN log {p}: {exc.strerror or exc}") from None
         if stat.S_ISDIR(st.st_mode):
             any_dir = True
-            found = [(q, q.relative_to(p).with_name(uncompressed_name(q))) for q in _logs_below(p, exclude)]
+            found = [(q, q.relative_to(p).with_name(output_name(q))) for q in _logs_below(p, exclude)]
             if not found:
                 raise UserFacingError(
                     f"no CAN logs in directory {p} ({', '.join(EXTENSIONS)}, each also {GZIP_SUFFIX})"
@@ -506,10 +506,10 @@ def _collect_logs(
 
 
 def _output_name(p: Path) -> Path:
-    """A log given directly keeps its name for its output (and with it its format; a compressed one's without
-    ``.gz``); one whose extension names no log format (a list's `ride.bin`, a FIFO) gets candump's `.log` added."""
-    name = uncompressed_name(p)
-    return Path(name if format_of_extension(name) is not None else name + ".log")
+    """A log given directly keeps its name for its output, and with it its format (``logformats.output_name``: a
+    compressed one's without ``.gz``, candump's for a format read only or an unknown extension: a list's
+    `ride.bin`, a FIFO)."""
+    return Path(output_name(p))
 
 
 def _logs_below(top: Path, exclude: Path | None) -> list[Path]:
@@ -525,7 +525,7 @@ def _logs_below(top: Path, exclude: Path | None) -> list[Path]:
             for name in sorted(names):
                 q = here / name
                 fmt = format_of_extension(q)
-                if fmt is not None and q.is_file() and (fmt != "csv" or _is_can_csv(q)):
+                if fmt is not None and q.is_file() and (fmt not in CONTENT_CHECKED or _content_is(q, fmt)):
                     found.append(q)
     except OSError as exc:
         raise UserFacingError(f"cannot list directory {exc.filename or top}: {exc.strerror or exc}") from None
@@ -536,9 +536,14 @@ def _raise_walk_error(exc: OSError) -> None:
     raise exc
 
 
-def _is_can_csv(path: Path) -> bool:
+# extensions many other files share: taken from a directory only when the content is the format (a ride's truth
+# CSV beside its log, a README.txt)
+CONTENT_CHECKED = ("csv", "candump_t")
+
+
+def _content_is(path: Path, fmt: str) -> bool:
     try:
-        return detect_format(path)[0] == "csv"
+        return detect_format(path)[0] == fmt
     except (LogFormatError, UserFacingError, OSError):
         return False
 

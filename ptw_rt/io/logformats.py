@@ -74,6 +74,7 @@ __all__ = [
     "format_of_extension",
     "open_log",
     "open_writer",
+    "output_name",
     "sniff",
     "uncompressed_name",
     "writer_format",
@@ -82,7 +83,16 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 # format -> name in messages; in the order the sniffer tries them
-FORMATS = {"candump": "candump", "asc": "ASC", "blf": "BLF", "trc": "TRC", "csv": "CSV", "mf4": "MF4", "db": "SQLite"}
+FORMATS = {
+    "candump": "candump",
+    "asc": "ASC",
+    "blf": "BLF",
+    "trc": "TRC",
+    "csv": "CSV",
+    "mf4": "MF4",
+    "db": "SQLite",
+    "candump_t": "candump -t",
+}
 EXTENSIONS = {
     ".log": "candump",
     ".asc": "asc",
@@ -92,6 +102,7 @@ EXTENSIONS = {
     ".mf4": "mf4",
     ".mdf": "mf4",
     ".db": "db",
+    ".txt": "candump_t",  # what `candump -ta can0 > ride.txt` leaves (read only)
 }
 GZIP_SUFFIX = ".gz"  # any format above, gzip-compressed (read only: ``ptw_rt.io.compressed``)
 SNIFF_BYTES = 64 << 10
@@ -124,6 +135,20 @@ def format_of_extension(path: str | Path) -> str | None:
     return EXTENSIONS.get(Path(uncompressed_name(path)).suffix.lower())
 
 
+READ_ONLY = ("candump_t",)  # formats read, not written: their replay's output is candump (``output_name``)
+
+
+def output_name(path: str | Path) -> str:
+    """The name of a log's replay output: its own, in its own format (without ``.gz``: outputs are not
+    compressed); candump ``.log`` for a format read only (``ride.txt`` -> ``ride.log``) or a name whose extension
+    names no format (``ride.bin`` -> ``ride.bin.log``)."""
+    name = uncompressed_name(path)
+    fmt = format_of_extension(name)
+    if fmt is None:
+        return name + ".log"
+    return str(Path(name).with_suffix(".log")) if fmt in READ_ONLY else name
+
+
 def uncompressed_name(path: str | Path) -> str:
     """The name of a log without its ``.gz`` (``ride.asc.gz`` -> ``ride.asc``): the name of its output."""
     name = Path(path).name
@@ -143,6 +168,16 @@ _TRC_FRAME_RE = re.compile(
 _TRC_HEAD_RE = re.compile(rb"^;\$FILEVERSION=", re.M)
 _CSV_FRAME_RE = re.compile(rb"^\d+(\.\d*)?,(0x)?[0-9A-Fa-f]+,[01],[01],[01],\d+,[A-Za-z0-9+/=]*\r?$", re.M)
 _CSV_HEAD = b"timestamp,arbitration_id,extended,remote,error,dlc,data"
+# candump's screen output with a time stamp (-t a: epoch seconds, -t A: local date and time, -t z: from zero), with
+# or without -x's direction and flags: ` (1700000000.012002)  can0  300   [8]  9E 40 D0 FF ED FF 00 00`
+_CANDUMP_T_STAMP = r"\((\d+\.\d+|\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d+)\)"
+_CANDUMP_T_FRAME = (
+    r"[ \t]+(\S+)[ \t]+(?:[RT]X[ \t]+\S+[ \t]+\S+[ \t]+)?([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})[ \t]+\[(\d{1,2})\]"
+)
+_CANDUMP_T_RE = re.compile((r"^[ \t]*" + _CANDUMP_T_STAMP + _CANDUMP_T_FRAME).encode(), re.M)
+_CANDUMP_T_LINE = re.compile(r"^[ \t]*" + _CANDUMP_T_STAMP + _CANDUMP_T_FRAME + r"[ \t]*(.*)$")
+# ... and without one (plain `candump can0`): frames with no time, which no replay can clock
+_CANDUMP_NO_TIME_RE = re.compile(rb"^[ \t]*\S+[ \t]+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})[ \t]+\[\d{1,2}\][ \t]", re.M)
 
 
 def sniff(head: bytes) -> tuple[list[str], list[str]]:
@@ -163,6 +198,7 @@ def sniff(head: bytes) -> tuple[list[str], list[str]]:
         ("asc", _ASC_FRAME_RE, lambda h: _ASC_HEAD_RE.search(h) is not None),
         ("trc", _TRC_FRAME_RE, lambda h: _TRC_HEAD_RE.search(h) is not None),
         ("csv", _CSV_FRAME_RE, lambda h: h.lstrip().startswith(_CSV_HEAD)),
+        ("candump_t", _CANDUMP_T_RE, None),
     ):
         if frame_re.search(head):
             framed.append(fmt)
@@ -191,6 +227,11 @@ def detect_format(path: str | Path, max_bytes: int = MAX_LOG_BYTES, *, warn: boo
                     "%s: content is %s, not %s: read as %s", path, FORMATS[found[0]], FORMATS[by_ext], FORMATS[found[0]]
                 )
             return found[0], size
+    if _CANDUMP_NO_TIME_RE.search(head):
+        raise LogFormatError(
+            f"{path}: candump output without time stamps: nothing to clock a replay by (record with candump -L, "
+            "or candump -ta)"
+        )
     names = "/".join(FORMATS.values())
     raise NotACanLogError(f"{path}: not a CAN log (no {names} frame in the first {SNIFF_BYTES >> 10} KiB)")
 
@@ -482,6 +523,57 @@ class _TrcReader(_TextReader):
             # noise below the format's 1 us resolution; rounded to it, the stamps are candump's to the bit
             msg.timestamp = round(msg.timestamp, 6)
         return msg
+
+
+class _CandumpTextReader(_MessageReader):
+    """candump's screen output with time stamps (``candump -ta``, ``-tA``, ``-tz``, with or without ``-x``),
+    parsed line by line; ``-td``'s deltas are not absolute times (the time rule rejects them: record with -ta)."""
+
+    unit = "candump -t line"
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        for n, line in self._lines():
+            if len(line) > MAX_TEXT_LINE:
+                yield Problem(n, f"line longer than {MAX_TEXT_LINE} characters", "", "too_long")
+                continue
+            text = line.strip()
+            if not text:
+                continue
+            m = _CANDUMP_T_LINE.match(text)
+            if m is None:
+                yield Problem(n, "not a candump -t frame line", text, "malformed")
+                continue
+            stamp, channel, ident, length, rest = m.groups()
+            try:
+                ts = _candump_t_time(stamp)
+            except (ValueError, OverflowError) as exc:
+                yield Problem(n, _short(exc), text, "bad_timestamp")
+                continue
+            size = int(length)
+            if rest.startswith("remote request"):
+                self._skip("remote")
+                continue
+            if size > 8:
+                self._skip("fd")
+                continue
+            try:
+                payload = bytes.fromhex(rest)
+            except ValueError as exc:
+                yield Problem(n, _short(exc), text, "malformed")
+                continue
+            if len(payload) != size:
+                yield Problem(n, f"[{size}] with {len(payload)} data bytes", text, "malformed")
+                continue
+            yield _frame(ts, channel, int(ident, 16), payload, n, len(ident) == 8)
+
+
+def _candump_t_time(stamp: str) -> float:
+    """Seconds since the epoch of candump's ``-ta`` (epoch seconds) or ``-tA`` (local date and time) stamp."""
+    if "-" in stamp:
+        import datetime
+
+        return datetime.datetime.strptime(stamp, "%Y-%m-%d %H:%M:%S.%f").timestamp()
+    return float(stamp)
 
 
 class _CsvReader(_MessageReader):
@@ -794,6 +886,7 @@ _READERS: dict[str, type[_MessageReader]] = {
     "blf": _BlfReader,
     "mf4": _Mf4Reader,
     "db": _SqliteReader,
+    "candump_t": _CandumpTextReader,
 }
 
 
@@ -1031,6 +1124,8 @@ def writer_format(path: str | Path) -> str:
         raise LogFormatError(
             f"{path}: outputs are not compressed: name it without {GZIP_SUFFIX} (and compress it after)"
         )
+    if format_of_extension(path) in READ_ONLY:
+        raise LogFormatError(f"{path}: candump's screen output is read, not written: name the output .log (candump -L)")
     fmt = format_of_extension(path)
     if fmt is None:
         known = ", ".join(f"{ext} ({FORMATS[f]})" for ext, f in EXTENSIONS.items())
