@@ -370,6 +370,18 @@ class _MessageReader(TimeRule):
                 yield n, line
 
 
+def _stripped(lines: Iterator[tuple[int, str]]) -> Iterator[tuple[int, str] | Problem]:
+    """(line number, stripped text) of each non-blank line of a text log; a line longer than ``MAX_TEXT_LINE``
+    as its Problem (the line-by-line readers of this module: CSV, candump -t)."""
+    for n, line in lines:
+        if len(line) > MAX_TEXT_LINE:
+            yield Problem(n, f"line longer than {MAX_TEXT_LINE} characters", "", "too_long")
+            continue
+        text = line.strip()
+        if text:
+            yield n, text
+
+
 class _LineFeed:
     """The lines of a text log as python-can's text readers iterate ``self.file``; remembers the last one."""
 
@@ -525,46 +537,49 @@ class _TrcReader(_TextReader):
         return msg
 
 
-class _CandumpTextReader(_MessageReader):
-    """candump's screen output with time stamps (``candump -ta``, ``-tA``, ``-tz``, with or without ``-x``),
-    parsed line by line; ``-td``'s deltas are not absolute times (the time rule rejects them: record with -ta)."""
+class _LineReader(_MessageReader):
+    """A text log parsed here line by line: ``_line`` turns each non-blank line within bounds into a frame, a
+    problem, or nothing (a header, a frame that is no input's kind: counted by ``_skip``)."""
+
+    def _items(self) -> Iterator[LogFrame | Problem]:
+        for item in _stripped(self._lines()):
+            out = item if isinstance(item, Problem) else self._line(*item)
+            if out is not None:
+                yield out
+
+    def _line(self, n: int, text: str) -> LogFrame | Problem | None:
+        raise NotImplementedError
+
+
+class _CandumpTextReader(_LineReader):
+    """candump's screen output with time stamps (``candump -ta``, ``-tA``, ``-tz``, with or without ``-x``);
+    ``-td``'s deltas are not absolute times (the time rule rejects them: record with -ta)."""
 
     unit = "candump -t line"
 
-    def _items(self) -> Iterator[LogFrame | Problem]:
-        for n, line in self._lines():
-            if len(line) > MAX_TEXT_LINE:
-                yield Problem(n, f"line longer than {MAX_TEXT_LINE} characters", "", "too_long")
-                continue
-            text = line.strip()
-            if not text:
-                continue
-            m = _CANDUMP_T_LINE.match(text)
-            if m is None:
-                yield Problem(n, "not a candump -t frame line", text, "malformed")
-                continue
-            stamp, channel, ident, length, rest = m.groups()
-            try:
-                ts = _candump_t_time(stamp)
-            except (ValueError, OverflowError) as exc:
-                yield Problem(n, _short(exc), text, "bad_timestamp")
-                continue
-            size = int(length)
-            if rest.startswith("remote request"):
-                self._skip("remote")
-                continue
-            if size > 8:
-                self._skip("fd")
-                continue
-            try:
-                payload = bytes.fromhex(rest)
-            except ValueError as exc:
-                yield Problem(n, _short(exc), text, "malformed")
-                continue
-            if len(payload) != size:
-                yield Problem(n, f"[{size}] with {len(payload)} data bytes", text, "malformed")
-                continue
-            yield _frame(ts, channel, int(ident, 16), payload, n, len(ident) == 8)
+    def _line(self, n: int, text: str) -> LogFrame | Problem | None:
+        m = _CANDUMP_T_LINE.match(text)
+        if m is None:
+            return Problem(n, "not a candump -t frame line", text, "malformed")
+        stamp, channel, ident, length, rest = m.groups()
+        try:
+            ts = _candump_t_time(stamp)
+        except (ValueError, OverflowError) as exc:
+            return Problem(n, _short(exc), text, "bad_timestamp")
+        size = int(length)
+        if rest.startswith("remote request"):
+            self._skip("remote")
+            return None
+        if size > 8:
+            self._skip("fd")
+            return None
+        try:
+            payload = bytes.fromhex(rest)
+        except ValueError as exc:
+            return Problem(n, _short(exc), text, "malformed")
+        if len(payload) != size:
+            return Problem(n, f"[{size}] with {len(payload)} data bytes", text, "malformed")
+        return _frame(ts, channel, int(ident, 16), payload, n, len(ident) == 8)
 
 
 def _candump_t_time(stamp: str) -> float:
@@ -576,41 +591,35 @@ def _candump_t_time(stamp: str) -> float:
     return float(stamp)
 
 
-class _CsvReader(_MessageReader):
+class _CsvReader(_LineReader):
     """python-can's CSV: ``timestamp,arbitration_id,extended,remote,error,dlc,data`` (data in base64), parsed
     here line by line as ``can.io.csv.CSVReader`` does (it stops at the first bad line)."""
 
     unit = "CSV line"
 
-    def _items(self) -> Iterator[LogFrame | Problem]:
-        for n, line in self._lines():
-            if len(line) > MAX_TEXT_LINE:
-                yield Problem(n, f"line longer than {MAX_TEXT_LINE} characters", "", "too_long")
-                continue
-            text = line.strip()
-            if not text or (n == 1 and text.startswith("timestamp,")):
-                continue
-            fields = text.split(",")
-            if len(fields) != 7:
-                yield Problem(n, f"expected 7 comma-separated fields, got {len(fields)}", text, "malformed")
-                continue
-            stamp, ident, extended, remote, error, dlc, data = fields
-            try:
-                ts = float(stamp)
-                frame_id = int(ident, 16)
-                payload = base64.b64decode(data, validate=True)
-                int(dlc)
-            except (ValueError, binascii.Error) as exc:
-                yield Problem(n, _short(exc), text, "malformed")
-                continue
-            if error == "1":
-                self._skip("error")
-            elif remote == "1":
-                self._skip("remote")
-            elif len(payload) > 8:
-                self._skip("fd")
-            else:
-                yield _frame(ts, 0, frame_id, payload, n, extended == "1")
+    def _line(self, n: int, text: str) -> LogFrame | Problem | None:
+        if n == 1 and text.startswith("timestamp,"):
+            return None
+        fields = text.split(",")
+        if len(fields) != 7:
+            return Problem(n, f"expected 7 comma-separated fields, got {len(fields)}", text, "malformed")
+        stamp, ident, extended, remote, error, dlc, data = fields
+        try:
+            ts = float(stamp)
+            frame_id = int(ident, 16)
+            payload = base64.b64decode(data, validate=True)
+            int(dlc)
+        except (ValueError, binascii.Error) as exc:
+            return Problem(n, _short(exc), text, "malformed")
+        if error == "1":
+            self._skip("error")
+        elif remote == "1":
+            self._skip("remote")
+        elif len(payload) > 8:
+            self._skip("fd")
+        else:
+            return _frame(ts, 0, frame_id, payload, n, extended == "1")
+        return None
 
 
 class _BlfReader(_MessageReader):
