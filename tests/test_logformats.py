@@ -737,3 +737,48 @@ def test_candump_screen_output_with_time_stamps_replays_like_the_log(ride, repla
     proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "1", "--no-progress"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["ride.log"]  # one log: no fleet summary
+
+
+def test_a_gzip_stream_seeks_back_within_its_window_only(tmp_path):
+    """The BLF reader steps back within a read chunk when it resynchronises on garbage: served from the last
+    2 MiB inflated, never by re-inflating from the start (quadratic on a crafted file); further back is an
+    OSError."""
+    import gzip
+
+    from ptw_rt.io.compressed import SEEK_BACK_BYTES, GzipLog
+
+    rng = random.Random(1)
+    data = rng.randbytes(3 * SEEK_BACK_BYTES)
+    packed = tmp_path / "x.gz"
+    packed.write_bytes(gzip.compress(data, 1))
+    stream = GzipLog(open(packed, "rb"), "x", 1 << 40, ValueError)  # noqa: SIM115 - closed by GzipLog
+    for _ in range(3000):
+        if rng.random() < 0.3:
+            stream.seek(max(0, stream.tell() - rng.randrange(1 << 20)))
+        start, n = stream.tell(), rng.randrange(60_000)
+        assert stream.read(n) == data[start : start + n]
+    start = stream.tell()
+    assert stream.read(-1) == data[start:]
+    with pytest.raises(OSError, match="seeks back at most"):
+        stream.seek(0)
+    stream.close()
+
+
+def test_a_gzip_compressed_blf_with_garbage_reads_like_the_plain_file(tmp_path):
+    """Garbage every 500 bytes of an uncompressed-container BLF: the same frames and counts, gzipped or not."""
+    import gzip
+
+    from can.io.blf import BLFWriter
+
+    plain = tmp_path / "raw.blf"
+    writer = BLFWriter(str(plain), compression_level=0)
+    for k in range(20_000):
+        writer.on_message_received(can.Message(timestamp=1.7e9 + k * 0.01, arbitration_id=0x100, data=bytes(8)))
+    writer.stop()
+    data = plain.read_bytes()
+    junk = data[:144] + b"".join(data[i : i + 500] + b"JUNK" for i in range(144, len(data), 500))
+    (tmp_path / "junk.blf").write_bytes(junk)
+    (tmp_path / "junk.blf.gz").write_bytes(gzip.compress(junk))
+    got, stats = _frames(tmp_path / "junk.blf")
+    got_gz, stats_gz = _frames(tmp_path / "junk.blf.gz")
+    assert stats.malformed > 20 and got_gz == got and stats_gz.rejected == stats.rejected

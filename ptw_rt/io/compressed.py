@@ -34,12 +34,17 @@ log = logging.getLogger(__name__)
 GZIP_MAGIC = b"\x1f\x8b"
 MAX_EXPANSION = 16  # decompressed bytes per compressed byte, at most (CAN logs: 4-6; readers pay per byte)
 EXPANSION_SLACK = 1 << 20  # bytes: a tiny file's header and dictionary are not a bomb
+SEEK_BACK_BYTES = 2 << 20  # bytes kept for a seek back (the BLF reader's: at most its 1 MiB read chunk)
 
 
 class GzipLog:
     """The decompressed stream of a gzip file, bounded (module docstring). File-like for the log readers:
     ``read``, ``tell`` and ``seek`` (in decompressed bytes), ``close``/``closed``, ``fileno`` (the compressed
-    file's), ``compressed_position`` (bytes of the file consumed: the progress)."""
+    file's), ``compressed_position`` (bytes of the file consumed: the progress).
+
+    A seek back goes to the last ``SEEK_BACK_BYTES`` inflated, kept in memory: the BLF reader steps back within
+    one read chunk when it resynchronises on garbage, and a stream re-inflated from its start at every such step
+    would be quadratic (a crafted ``.blf.gz`` with garbage every kilobyte). Further back is refused (OSError)."""
 
     def __init__(self, raw: IO[bytes], name: str, max_bytes: int, error: type[Exception]) -> None:
         self._raw = raw
@@ -48,7 +53,9 @@ class GzipLog:
         self.compressed_size = _size(raw)
         self.limit = min(max_bytes, MAX_EXPANSION * self.compressed_size + EXPANSION_SLACK)
         self._gz = gzip.GzipFile(fileobj=raw, mode="rb")
-        self._pos = 0
+        self._pos = 0  # the reader's position in the data
+        self._inflated = 0  # bytes inflated so far: the data's end as known
+        self._window = bytearray()  # the last SEEK_BACK_BYTES inflated: data[_inflated - len(_window):_inflated]
         self.problem: str | None = None  # why the stream ended before its end, once it did
 
     @property
@@ -69,10 +76,24 @@ class GzipLog:
             return 0
 
     def read(self, n: int = -1) -> bytes:
+        want = self.limit + 1 - self._pos if n is None or n < 0 else n
+        out = b""
+        behind = self._inflated - self._pos  # bytes a seek back left to give again, from the window
+        if behind > 0:
+            start = len(self._window) - behind
+            out = bytes(self._window[start : start + want])
+            self._pos += len(out)
+            want -= len(out)
+        if want > 0:  # a short read is the end of the data to every reader: the rest is inflated now
+            data = self._inflate(want)
+            self._pos += len(data)
+            out += data
+        return out
+
+    def _inflate(self, want: int) -> bytes:
         if self.problem is not None:
             return b""
-        room = self.limit - self._pos
-        want = room + 1 if n is None or n < 0 else min(n, room + 1)
+        want = min(want, self.limit + 1 - self._inflated)
         # read1 inflates one input block at a time: an error loses none of what the blocks before it gave
         # (GzipFile.read(n) drops what it had gathered for the call when the stream turns out truncated)
         parts: list[bytes] = []
@@ -82,7 +103,9 @@ class GzipLog:
                 part = self._gz.read1(want - got)
             except (EOFError, gzip.BadGzipFile, zlib.error, OSError) as exc:
                 # a truncated or corrupt stream: what came before is good data; the rest is lost, said once
-                self.problem = f"compressed stream ends early at byte {self._pos + got} of its data ({_short(exc)})"
+                self.problem = (
+                    f"compressed stream ends early at byte {self._inflated + got} of its data ({_short(exc)})"
+                )
                 log.warning("%s: %s: read up to there", self.name, self.problem)
                 break
             if not part:
@@ -90,21 +113,23 @@ class GzipLog:
             parts.append(part)
             got += len(part)
         data = b"".join(parts)
-        self._pos += len(data)
-        if self._pos > self.limit:
+        self._inflated += len(data)
+        if self._inflated > self.limit:
             raise self._error(
                 f"{self.name}: decompresses beyond {self.limit} bytes ({MAX_EXPANSION} times its "
                 f"{self.compressed_size} compressed bytes, or the log size bound): a gzip bomb, not a CAN log"
             )
+        self._window += data
+        if len(self._window) > SEEK_BACK_BYTES:
+            del self._window[: len(self._window) - SEEK_BACK_BYTES]
         return data
 
     def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
         if whence != os.SEEK_SET or offset < 0:
             raise OSError("GzipLog seeks to absolute positions only")
-        if offset < self._pos:  # back: gzip re-inflates from the start (BLF resynchronises forward only)
-            self._gz.seek(0)
-            self._pos = 0
-            self.problem = None
+        if offset < self._inflated - len(self._window):
+            raise OSError(f"GzipLog seeks back at most {SEEK_BACK_BYTES} bytes")
+        self._pos = min(offset, self._inflated)
         while self._pos < offset and self.read(min(offset - self._pos, 1 << 20)):
             pass
         return self._pos
