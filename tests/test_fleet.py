@@ -61,7 +61,7 @@ def _check(out: Path, top: Path, expected: dict, proc) -> list[dict]:
         assert (out / rel).read_bytes() == data, rel  # the same bytes as the single-process replay
     junk = top / "b" / "junk.log"
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
-    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t"
+    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t/python-can text"
     assert errors == [f"error: {junk}: not a CAN log (no {names} frame in the first 64 KiB)"]
     assert "fleet: 3 of 4 logs replayed" in proc.stderr
     with open(out / "fleet.csv", newline="") as fh:

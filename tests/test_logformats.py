@@ -381,7 +381,7 @@ def test_the_mf4_readers_message_reaches_the_user_on_one_line(monkeypatch):
 def test_not_a_log_and_empty(tmp_path):
     rng = random.Random(3)
     (tmp_path / "x.asc").write_bytes(bytes(rng.randrange(256) for _ in range(5000)))
-    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t"
+    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t/python-can text"
     with pytest.raises(NotACanLogError, match=rf"x.asc: not a CAN log \(no {names} frame"):
         detect_format(tmp_path / "x.asc")
     (tmp_path / "e.log").write_bytes(b"")
@@ -413,7 +413,7 @@ def test_cli_refuses_not_a_log_and_empty_in_one_line(ride, tmp_path):
         (["replay", "x.log", "--out", "o.log"], "ptw-rt replay: x.log: not a CAN log (no candump/ASC/BLF/TRC/CSV/MF4/"),
         (["replay", "empty.log", "--out", "o.log"], "ptw-rt replay: empty.log: empty log (0 bytes)"),
         (["replay", "ok.blf", "--out", "o.bin"], "ptw-rt replay: o.bin: unknown log format '.bin'"),
-        (["replay", "ok.blf", "--out", "o.txt"], "ptw-rt replay: o.txt: candump's screen output is read, not written"),
+        (["replay", "ok.blf", "--out", "o.txt"], "ptw-rt replay: o.txt: text logs are read, not written"),
     ]
     for args, start in cases:
         proc = _cli(args, tmp_path)
@@ -432,7 +432,7 @@ def test_directory_replay_takes_every_format_and_lists_failures(ride, tmp_path):
     proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "2", "--no-progress"], tmp_path)
     # a bad log of a directory run is a partial failure (exit 1, EXIT_PARTIAL), not a bad command (2)
     assert proc.returncode == 1, proc.stderr
-    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t"
+    names = "candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t/python-can text"
     junk = f"{src / 'junk.asc'}: not a CAN log (no {names} frame in the first 64 KiB)"
     assert [line for line in proc.stderr.splitlines() if line.startswith("error: ")] == [f"error: {junk}"]
     assert "1 of 4 logs failed" in proc.stderr, proc.stderr
@@ -782,3 +782,23 @@ def test_a_gzip_compressed_blf_with_garbage_reads_like_the_plain_file(tmp_path):
     got, stats = _frames(tmp_path / "junk.blf")
     got_gz, stats_gz = _frames(tmp_path / "junk.blf.gz")
     assert stats.malformed > 20 and got_gz == got and stats_gz.rejected == stats.rejected
+
+
+def test_python_can_text_replays_like_the_log(ride, replays, tmp_path):
+    """`python -m can.logger -f ride.txt` writes `str(Message)` a line (`can.Printer`), a format python-can cannot
+    read back: read here, the same frames and replay; remote, error and FD frames counted as skipped."""
+    text = tmp_path / "pycan.txt"
+    with can.Printer(str(text)) as printer:
+        for msg in can.LogReader(str(ride["candump"])):
+            printer.on_message_received(msg)
+        printer.on_message_received(can.Message(timestamp=1e9, arbitration_id=0x123, is_remote_frame=True, dlc=8))
+        printer.on_message_received(can.Message(timestamp=1e9, arbitration_id=0x123, is_fd=True, data=bytes(12)))
+    assert detect_format(text)[0] == "pycan_txt"
+    ref, _ = _frames(ride["candump"])
+    got, stats = _frames(text)
+    assert stats.malformed == 0 and stats.skipped == {"remote": 1, "fd": 1}
+    assert [f[1:3] for f in got] == [f[1:3] for f in ref]
+    assert max(abs(a[0] - b[0]) for a, b in zip(got, ref, strict=True)) < 1e-6
+    log = tmp_path / "o.log"
+    replay_log(text, log, None, DEFAULT_CONFIG)
+    assert log.read_bytes() == replays["candump"][0].read_bytes()

@@ -63,6 +63,7 @@ from ptw_rt.errors import EXIT_OK, EXIT_PARTIAL, OutputError, UserFacingError, o
 from ptw_rt.io.candump import FrameArrays
 from ptw_rt.io.logformats import (
     EXTENSIONS,
+    FAMILIES,
     GZIP_SUFFIX,
     EmptyLogError,
     LogFormatError,
@@ -472,12 +473,12 @@ def _collect_logs(
     A directory is searched recursively (at most MAX_TREE_DEPTH levels, symbolic links to directories not
     followed, `exclude` -- the output directory -- skipped): every file with a log extension
     (``ptw_rt.io.logformats.EXTENSIONS``, or one of them and ``.gz``) is a log (one that is not fails on its own),
-    except ``.csv`` and ``.txt`` files, which are taken only when they are python-can CAN CSV or candump's screen
-    output with time stamps: a ride's truth and estimates CSV files sit beside its log. Its outputs mirror the
-    tree below it; a file given directly keeps its name (a compressed one's without ``.gz``: outputs are written
-    uncompressed). With `several` inputs (more than one, or a --list file) a path that is missing, unreadable or
-    not a regular file is kept as a log that fails on its own, like any bad log of a fleet run (its `error:`
-    line, exit 1): one stale line of a list of thousands must not stop the others."""
+    except ``.csv`` and ``.txt`` files, which are taken only when they are python-can CAN CSV, candump's screen
+    output with time stamps or python-can's text: a ride's truth and estimates CSV files sit beside its log. Its
+    outputs mirror the tree below it; a file given directly keeps its name (a compressed one's without ``.gz``:
+    outputs are written uncompressed). With `several` inputs (more than one, or a --list file) a path that is
+    missing, unreadable or not a regular file is kept as a log that fails on its own, like any bad log of a fleet
+    run (its `error:` line, exit 1): one stale line of a list of thousands must not stop the others."""
     files: list[tuple[Path, Path]] = []
     any_dir = False
     for p in paths:
@@ -542,8 +543,9 @@ CONTENT_CHECKED = ("csv", "candump_t")
 
 
 def _content_is(path: Path, fmt: str) -> bool:
+    """Whether the file's content is the format its extension names (or one of its family: a `.txt`)."""
     try:
-        return detect_format(path)[0] == fmt
+        return detect_format(path)[0] in FAMILIES.get(fmt, (fmt,))
     except (LogFormatError, UserFacingError, OSError):
         return False
 

@@ -62,6 +62,7 @@ from ptw_rt.io.candump import (
 
 __all__ = [
     "EXTENSIONS",
+    "FAMILIES",
     "FORMATS",
     "GZIP_SUFFIX",
     "SNIFF_BYTES",
@@ -92,6 +93,7 @@ FORMATS = {
     "mf4": "MF4",
     "db": "SQLite",
     "candump_t": "candump -t",
+    "pycan_txt": "python-can text",
 }
 EXTENSIONS = {
     ".log": "candump",
@@ -102,8 +104,11 @@ EXTENSIONS = {
     ".mf4": "mf4",
     ".mdf": "mf4",
     ".db": "db",
-    ".txt": "candump_t",  # what `candump -ta can0 > ride.txt` leaves (read only)
+    ".txt": "candump_t",  # what `candump -ta can0 > ride.txt` leaves, or python-can's text (FAMILIES; read only)
 }
+# an extension several formats share: its content picks among them without a warning (a `.txt` is candump's
+# screen output or python-can's `Printer` text)
+FAMILIES = {"candump_t": ("candump_t", "pycan_txt")}
 GZIP_SUFFIX = ".gz"  # any format above, gzip-compressed (read only: ``ptw_rt.io.compressed``)
 SNIFF_BYTES = 64 << 10
 MAX_TEXT_LINE = 1024  # ASC/TRC lines of CAN FD frames reach ~400 characters; ours are < 100
@@ -135,7 +140,7 @@ def format_of_extension(path: str | Path) -> str | None:
     return EXTENSIONS.get(Path(uncompressed_name(path)).suffix.lower())
 
 
-READ_ONLY = ("candump_t",)  # formats read, not written: their replay's output is candump (``output_name``)
+READ_ONLY = ("candump_t", "pycan_txt")  # formats read, not written: their replay's output is candump (``output_name``)
 
 
 def output_name(path: str | Path) -> str:
@@ -176,6 +181,13 @@ _CANDUMP_T_FRAME = (
 )
 _CANDUMP_T_RE = re.compile((r"^[ \t]*" + _CANDUMP_T_STAMP + _CANDUMP_T_FRAME).encode(), re.M)
 _CANDUMP_T_LINE = re.compile(r"^[ \t]*" + _CANDUMP_T_STAMP + _CANDUMP_T_FRAME + r"[ \t]*(.*)$")
+# python-can's text (`python -m can.logger -f ride.txt`: `can.Printer`, one `str(Message)` a line), which python-can
+# writes and does not read: `Timestamp: 1700000000.012002    ID:      300    S Rx   DL:  8    9e 40 ...  Channel: can0`
+_PYCAN_TXT_RE = re.compile(rb"^Timestamp:[ \t]*\d+\.\d+[ \t]+ID:[ \t]*[0-9a-fA-F]+[ \t]+[SX][ \t]", re.M)
+_PYCAN_TXT_LINE = re.compile(
+    r"^Timestamp:\s*(\S+)\s+ID:\s*([0-9a-fA-F]{1,8})\s+([SX])\s+(.*?)DL:\s*(\d+)\s*((?:[0-9a-fA-F]{2}\s*)*)"
+    r"(?:Channel:\s*(\S+))?\s*$"
+)
 # ... and without one (plain `candump can0`): frames with no time, which no replay can clock
 _CANDUMP_NO_TIME_RE = re.compile(rb"^[ \t]*\S+[ \t]+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})[ \t]+\[\d{1,2}\][ \t]", re.M)
 
@@ -199,6 +211,7 @@ def sniff(head: bytes) -> tuple[list[str], list[str]]:
         ("trc", _TRC_FRAME_RE, lambda h: _TRC_HEAD_RE.search(h) is not None),
         ("csv", _CSV_FRAME_RE, lambda h: h.lstrip().startswith(_CSV_HEAD)),
         ("candump_t", _CANDUMP_T_RE, None),
+        ("pycan_txt", _PYCAN_TXT_RE, None),
     ):
         if frame_re.search(head):
             framed.append(fmt)
@@ -218,9 +231,11 @@ def detect_format(path: str | Path, max_bytes: int = MAX_LOG_BYTES, *, warn: boo
         raise EmptyLogError(f"{path}: empty log ({'nothing decompressed' if size else '0 bytes'})")
     framed, headed = sniff(head)
     by_ext = format_of_extension(path)
+    family = FAMILIES.get(by_ext, (by_ext,))
     for found in (framed, headed):
-        if by_ext in found:
-            return by_ext, size
+        for fmt in found:
+            if fmt in family:
+                return fmt, size
         if found:
             if by_ext is not None and warn:
                 log.warning(
@@ -582,6 +597,36 @@ class _CandumpTextReader(_LineReader):
         return _frame(ts, channel, int(ident, 16), payload, n, len(ident) == 8)
 
 
+class _PycanTextReader(_LineReader):
+    """python-can's text (``can.Printer``: ``str(Message)`` a line), which python-can writes and cannot read."""
+
+    unit = "python-can text line"
+
+    def _line(self, n: int, text: str) -> LogFrame | Problem | None:
+        m = _PYCAN_TXT_LINE.match(text)
+        if m is None:
+            return Problem(n, "not a python-can text frame line", text, "malformed")
+        stamp, ident, kind, flags, length, data, channel = m.groups()
+        try:
+            ts = float(stamp)
+        except ValueError as exc:
+            return Problem(n, _short(exc), text, "bad_timestamp")
+        marks = flags.split()
+        if "E" in marks:
+            self._skip("error")
+            return None
+        if "R" in marks:
+            self._skip("remote")
+            return None
+        payload = bytes.fromhex(data)
+        if "F" in marks or len(payload) > 8:
+            self._skip("fd")
+            return None
+        if len(payload) != int(length):
+            return Problem(n, f"DL {length} with {len(payload)} data bytes", text, "malformed")
+        return _frame(ts, channel or 0, int(ident, 16), payload, n, kind == "X")
+
+
 def _candump_t_time(stamp: str) -> float:
     """Seconds since the epoch of candump's ``-ta`` (epoch seconds) or ``-tA`` (local date and time) stamp."""
     if "-" in stamp:
@@ -896,6 +941,7 @@ _READERS: dict[str, type[_MessageReader]] = {
     "mf4": _Mf4Reader,
     "db": _SqliteReader,
     "candump_t": _CandumpTextReader,
+    "pycan_txt": _PycanTextReader,
 }
 
 
@@ -1134,7 +1180,7 @@ def writer_format(path: str | Path) -> str:
             f"{path}: outputs are not compressed: name it without {GZIP_SUFFIX} (and compress it after)"
         )
     if format_of_extension(path) in READ_ONLY:
-        raise LogFormatError(f"{path}: candump's screen output is read, not written: name the output .log (candump -L)")
+        raise LogFormatError(f"{path}: text logs are read, not written: name the output .log (candump -L)")
     fmt = format_of_extension(path)
     if fmt is None:
         known = ", ".join(f"{ext} ({FORMATS[f]})" for ext, f in EXTENSIONS.items())

@@ -123,7 +123,7 @@ def test_replay_of_hostile_logs_rejects_lines_and_finishes(hostile_logs, tmp_pat
     assert errors == [
         f"error: {src / 'empty.log'}: empty log (0 bytes)",
         f"error: {src / 'random_bytes.log'}: not a CAN log "
-        "(no candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t frame in the first 64 KiB)",
+        "(no candump/ASC/BLF/TRC/CSV/MF4/SQLite/candump -t/python-can text frame in the first 64 KiB)",
     ], proc.stderr[-2000:]
     summaries = {json.loads(line)["log"].rsplit("/", 1)[-1][:-4]: json.loads(line) for line in proc.stdout.splitlines()}
     assert set(summaries) == set(names)
