@@ -720,6 +720,16 @@ def test_candump_screen_output_with_time_stamps_replays_like_the_log(ride, repla
     log = tmp_path / "o.log"
     replay_log(epoch, log, None, DEFAULT_CONFIG)
     assert log.read_bytes() == replays["candump"][0].read_bytes()
+    # -t z: from zero; -t d: each frame's time since the one before (their running sum, from zero)
+    t0 = ref[0][0]
+    zero = _candump_t(ref, tmp_path / "tz.txt", lambda ts: f"{ts - t0:010.6f}")
+    previous = iter([t0] + [f[0] for f in ref])
+    delta = _candump_t(ref, tmp_path / "td.txt", lambda ts: f"{ts - next(previous):010.6f}")
+    assert (detect_format(zero)[0], detect_format(delta)[0]) == ("candump_t", "candump_td")
+    for path, tolerance in ((zero, 2e-6), (delta, 1e-6 * len(ref))):  # -t d's rounding adds up
+        got, stats = _frames(path)
+        assert stats.malformed == 0 and [f[1:] for f in got] == [f[1:] for f in ref]
+        assert max(abs(a[0] - (b[0] - t0)) for a, b in zip(got, ref, strict=True)) < tolerance
     bad = epoch.read_text().splitlines()
     bad[3] = bad[3][:-3]  # a byte fewer than its [n]
     bad[5] = " (12:00)  can0  300   [8]  00"

@@ -93,6 +93,7 @@ FORMATS = {
     "mf4": "MF4",
     "db": "SQLite",
     "candump_t": "candump -t",
+    "candump_td": "candump -td",
     "pycan_txt": "python-can text",
 }
 EXTENSIONS = {
@@ -108,7 +109,7 @@ EXTENSIONS = {
 }
 # an extension several formats share: its content picks among them without a warning (a `.txt` is candump's
 # screen output or python-can's `Printer` text)
-FAMILIES = {"candump_t": ("candump_t", "pycan_txt")}
+FAMILIES = {"candump_t": ("candump_t", "candump_td", "pycan_txt")}
 GZIP_SUFFIX = ".gz"  # any format above, gzip-compressed (read only: ``ptw_rt.io.compressed``)
 SNIFF_BYTES = 64 << 10
 MAX_TEXT_LINE = 1024  # ASC/TRC lines of CAN FD frames reach ~400 characters; ours are < 100
@@ -140,7 +141,11 @@ def format_of_extension(path: str | Path) -> str | None:
     return EXTENSIONS.get(Path(uncompressed_name(path)).suffix.lower())
 
 
-READ_ONLY = ("candump_t", "pycan_txt")  # formats read, not written: their replay's output is candump (``output_name``)
+READ_ONLY = (
+    "candump_t",
+    "candump_td",
+    "pycan_txt",
+)  # formats read, not written: their replay's output is candump (``output_name``)
 
 
 def output_name(path: str | Path) -> str:
@@ -188,6 +193,8 @@ _PYCAN_TXT_LINE = re.compile(
     r"^Timestamp:\s*(\S+)\s+ID:\s*([0-9a-fA-F]{1,8})\s+([SX])\s+(.*?)DL:\s*(\d+)\s*((?:[0-9a-fA-F]{2}\s*)*)"
     r"(?:Channel:\s*(\S+))?\s*$"
 )
+# -t d stamps each frame with the time since the one before: told from the others by stamps that go back
+_CANDUMP_T_NUMBER = re.compile(rb"^[ \t]*\((\d+\.\d+)\)", re.M)
 # ... and without one (plain `candump can0`): frames with no time, which no replay can clock
 _CANDUMP_NO_TIME_RE = re.compile(rb"^[ \t]*\S+[ \t]+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})[ \t]+\[\d{1,2}\][ \t]", re.M)
 
@@ -230,6 +237,8 @@ def detect_format(path: str | Path, max_bytes: int = MAX_LOG_BYTES, *, warn: boo
     if not head:
         raise EmptyLogError(f"{path}: empty log ({'nothing decompressed' if size else '0 bytes'})")
     framed, headed = sniff(head)
+    if "candump_t" in framed and _deltas(head):
+        framed[framed.index("candump_t")] = "candump_td"
     by_ext = format_of_extension(path)
     family = FAMILIES.get(by_ext, (by_ext,))
     for found in (framed, headed):
@@ -247,8 +256,19 @@ def detect_format(path: str | Path, max_bytes: int = MAX_LOG_BYTES, *, warn: boo
             f"{path}: candump output without time stamps: nothing to clock a replay by (record with candump -L, "
             "or candump -ta)"
         )
-    names = "/".join(FORMATS.values())
+    names = "/".join(name for fmt, name in FORMATS.items() if fmt != "candump_td")  # -t d is -t's time base
     raise NotACanLogError(f"{path}: not a CAN log (no {names} frame in the first {SNIFF_BYTES >> 10} KiB)")
+
+
+def _deltas(head: bytes) -> bool:
+    """Whether candump -t stamps are -t d's deltas: times that go back at one pair of frames in ten or more (a
+    bus's deltas go up and down all the time; -t a and -t z only go back where the clock was stepped, and -t a's
+    epoch seconds are no frame's delta)."""
+    stamps = [float(m) for m in _CANDUMP_T_NUMBER.findall(head)]
+    if len(stamps) < 3 or max(stamps) > 1e6:
+        return False
+    back = sum(b < a for a, b in zip(stamps, stamps[1:], strict=False))
+    return back >= 0.1 * (len(stamps) - 1)
 
 
 def _size(fh: IO[bytes]) -> int:
@@ -567,10 +587,14 @@ class _LineReader(_MessageReader):
 
 
 class _CandumpTextReader(_LineReader):
-    """candump's screen output with time stamps (``candump -ta``, ``-tA``, ``-tz``, with or without ``-x``);
-    ``-td``'s deltas are not absolute times (the time rule rejects them: record with -ta)."""
+    """candump's screen output with time stamps (``candump -ta``, ``-tA``, ``-tz``, with or without ``-x``)."""
 
     unit = "candump -t line"
+    deltas = False  # -t d: each stamp the time since the frame before (``_CandumpDeltaReader``)
+
+    def __init__(self, path: Path, max_bytes: int, **rules: Any) -> None:
+        super().__init__(path, max_bytes, **rules)
+        self._clock = 0.0
 
     def _line(self, n: int, text: str) -> LogFrame | Problem | None:
         m = _CANDUMP_T_LINE.match(text)
@@ -581,6 +605,9 @@ class _CandumpTextReader(_LineReader):
             ts = _candump_t_time(stamp)
         except (ValueError, OverflowError) as exc:
             return Problem(n, _short(exc), text, "bad_timestamp")
+        if self.deltas:  # the time since the frame before: the times are their running sum, from 0
+            self._clock += ts
+            ts = self._clock
         size = int(length)
         if rest.startswith("remote request"):
             self._skip("remote")
@@ -595,6 +622,13 @@ class _CandumpTextReader(_LineReader):
         if len(payload) != size:
             return Problem(n, f"[{size}] with {len(payload)} data bytes", text, "malformed")
         return _frame(ts, channel, int(ident, 16), payload, n, len(ident) == 8)
+
+
+class _CandumpDeltaReader(_CandumpTextReader):
+    """``candump -td``: each line stamped with the time since the line before; the times are their running sum
+    (from 0, like ``-tz``)."""
+
+    deltas = True
 
 
 class _PycanTextReader(_LineReader):
@@ -941,6 +975,7 @@ _READERS: dict[str, type[_MessageReader]] = {
     "mf4": _Mf4Reader,
     "db": _SqliteReader,
     "candump_t": _CandumpTextReader,
+    "candump_td": _CandumpDeltaReader,
     "pycan_txt": _PycanTextReader,
 }
 
