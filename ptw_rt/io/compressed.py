@@ -15,7 +15,7 @@ with, gives:
   ends, with one warning naming the byte (``GzipLog.problem``), as a truncated BLF or candump log does.
 
 Decompression is Python's ``gzip`` (zlib): each ``read(n)`` inflates at most ``n`` bytes, so memory stays bounded
-by the reader's chunk whatever the file declares.
+by the reader's chunk and the ``SEEK_BACK_BYTES`` kept for a seek back, whatever the file declares.
 """
 
 from __future__ import annotations
