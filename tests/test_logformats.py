@@ -540,8 +540,9 @@ def test_a_gzip_bomb_is_refused_within_bounds(tmp_path):
 
 
 def test_gzip_logs_in_a_directory_and_their_outputs(ride, tmp_path):
-    """A directory of ``.log.gz`` / ``.blf.gz`` logs replays like one of plain logs; outputs are written
-    uncompressed, named without ``.gz``; an output named ``.gz`` is refused; MF4 inside gzip is one line."""
+    """A directory of ``.log.gz`` / ``.blf.gz`` logs replays like one of plain logs; each output is compressed
+    when its input was and its format is written compressed (a text one: ``.log.gz`` yes, ``.blf.gz`` becomes
+    ``.blf``); a BLF output named ``.gz`` is refused; MF4 inside gzip is one line."""
     import gzip
 
     src = tmp_path / "in"
@@ -552,10 +553,10 @@ def test_gzip_logs_in_a_directory_and_their_outputs(ride, tmp_path):
     proc = _cli(["replay", src, "--out", tmp_path / "out", "--jobs", "1", "--no-progress"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     outs = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert outs == sorted(["fleet.csv", "fleet.parquet", ride["blf"].name, ride["candump"].name])
+    assert outs == sorted(["fleet.csv", "fleet.parquet", ride["blf"].name, ride["candump"].name + ".gz"])
     (tmp_path / "r.mf4.gz").write_bytes(gzip.compress(ride["mf4"].read_bytes()))
     cases = [
-        (["replay", src / (ride["candump"].name + ".gz"), "--out", "o.log.gz"], "outputs are not compressed"),
+        (["replay", src / (ride["candump"].name + ".gz"), "--out", "o.blf.gz"], "BLF is not written compressed"),
         (["replay", "r.mf4.gz", "--out", "o.log"], "MF4 inside gzip is not read"),
     ]
     for args, text in cases:
@@ -812,3 +813,17 @@ def test_python_can_text_replays_like_the_log(ride, replays, tmp_path):
     log = tmp_path / "o.log"
     replay_log(text, log, None, DEFAULT_CONFIG)
     assert log.read_bytes() == replays["candump"][0].read_bytes()
+
+
+@pytest.mark.parametrize("ext", ["log", "asc", "trc", "csv"])
+def test_an_output_named_gz_is_written_compressed(ride, replays, ext, tmp_path):
+    """``--out est.log.gz``: the text formats written through gzip, what python-can's and this reader read back."""
+    import gzip
+
+    packed, plain = tmp_path / f"est.{ext}.gz", tmp_path / f"est.{ext}"
+    replay_log(ride["candump"], packed, None, DEFAULT_CONFIG)
+    replay_log(ride["candump"], plain, None, DEFAULT_CONFIG)
+    if ext == "log":
+        assert gzip.decompress(packed.read_bytes()) == replays["candump"][0].read_bytes()
+    assert _frames(packed)[0] == _frames(plain)[0]
+    assert len(list(can.LogReader(str(packed)))) == len(list(can.LogReader(str(plain))))

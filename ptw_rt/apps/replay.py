@@ -475,10 +475,10 @@ def _collect_logs(
     (``ptw_rt.io.logformats.EXTENSIONS``, or one of them and ``.gz``) is a log (one that is not fails on its own),
     except ``.csv`` and ``.txt`` files, which are taken only when they are python-can CAN CSV, candump's screen
     output with time stamps or python-can's text: a ride's truth and estimates CSV files sit beside its log. Its
-    outputs mirror the tree below it; a file given directly keeps its name (a compressed one's without ``.gz``:
-    outputs are written uncompressed). With `several` inputs (more than one, or a --list file) a path that is
-    missing, unreadable or not a regular file is kept as a log that fails on its own, like any bad log of a fleet
-    run (its `error:` line, exit 1): one stale line of a list of thousands must not stop the others."""
+    outputs mirror the tree below it; a file given directly keeps its name (``logformats.output_name``). With
+    `several` inputs (more than one, or a --list file) a path that is missing, unreadable or not a regular file is
+    kept as a log that fails on its own, like any bad log of a fleet run (its `error:` line, exit 1): one stale
+    line of a list of thousands must not stop the others."""
     files: list[tuple[Path, Path]] = []
     any_dir = False
     for p in paths:

@@ -21,6 +21,7 @@ by the reader's chunk and the ``SEEK_BACK_BYTES`` kept for a seek back, whatever
 from __future__ import annotations
 
 import gzip
+import io
 import logging
 import os
 import zlib
@@ -159,6 +160,12 @@ def open_log_file(path: str | Path, *, max_bytes: int, what: str, error: type[Ex
     if magic != GZIP_MAGIC:
         return fh
     return GzipLog(fh, str(path), max_bytes, error)
+
+
+def text_writer(path: str | Path) -> IO[str]:
+    """A text stream written gzip-compressed to ``path`` (an output log named ``.gz``), reproducible: no time
+    in its header. Errors are ``OSError``s, as a plain file's."""
+    return io.TextIOWrapper(gzip.GzipFile(path, "wb", mtime=0), encoding="utf-8", newline="\n")
 
 
 def is_compressed(fh: object) -> bool:

@@ -1,6 +1,7 @@
 """Every CAN log format python-can reads, in and out: candump ``-L``, ASC, BLF, TRC, CSV, MF4 (ASAM MDF 4) and
-SQLite (``.db``, ``ptw_rt.io.sqlite_log``); in,
-each of them gzip-compressed too (``ride.log.gz``: ``ptw_rt.io.compressed``, bounded; MF4 excepted).
+SQLite (``.db``, ``ptw_rt.io.sqlite_log``); in only, candump's screen output (``-t a/A/z/d``) and python-can's
+text (``can.Printer``); in, each of them but MF4 and SQLite gzip-compressed too (``ride.log.gz``:
+``ptw_rt.io.compressed``, bounded), and out, the text ones (``--out est.log.gz``).
 
     open_log(path)            -> (iterator of (timestamp, id, data, extended), LogStats)
     open_writer(path, ...)    -> a writer of the format the extension names (candump: our own, byte-identical)
@@ -141,26 +142,29 @@ def format_of_extension(path: str | Path) -> str | None:
     return EXTENSIONS.get(Path(uncompressed_name(path)).suffix.lower())
 
 
-READ_ONLY = (
-    "candump_t",
-    "candump_td",
-    "pycan_txt",
-)  # formats read, not written: their replay's output is candump (``output_name``)
+READ_ONLY = ("candump_t", "candump_td", "pycan_txt")  # read, not written: their replay's output is candump
+# formats written gzip-compressed when the output's name ends in .gz: the text ones (a BLF writer seeks back to its
+# header when it closes, an MF4's and an SQLite's library writes the file itself)
+GZIP_WRITABLE = ("candump", "asc", "trc", "csv")
 
 
 def output_name(path: str | Path) -> str:
-    """The name of a log's replay output: its own, in its own format (without ``.gz``: outputs are not
-    compressed); candump ``.log`` for a format read only (``ride.txt`` -> ``ride.log``) or a name whose extension
-    names no format (``ride.bin`` -> ``ride.bin.log``)."""
+    """The name of a log's replay output: its own, in its own format; candump ``.log`` for a format read only
+    (``ride.txt`` -> ``ride.log``) or a name whose extension names no format (``ride.bin`` -> ``ride.bin.log``);
+    compressed when the input was and the output's format is written compressed (``ride.asc.gz`` -> itself,
+    ``ride.blf.gz`` -> ``ride.blf``)."""
     name = uncompressed_name(path)
     fmt = format_of_extension(name)
     if fmt is None:
-        return name + ".log"
-    return str(Path(name).with_suffix(".log")) if fmt in READ_ONLY else name
+        name, fmt = name + ".log", "candump"
+    elif fmt in READ_ONLY:
+        name, fmt = str(Path(name).with_suffix(".log")), "candump"
+    packed = Path(path).name.lower().endswith(GZIP_SUFFIX)
+    return name + GZIP_SUFFIX if packed and fmt in GZIP_WRITABLE else name
 
 
 def uncompressed_name(path: str | Path) -> str:
-    """The name of a log without its ``.gz`` (``ride.asc.gz`` -> ``ride.asc``): the name of its output."""
+    """The name of a log without its ``.gz`` (``ride.asc.gz`` -> ``ride.asc``): the name its format is read from."""
     name = Path(path).name
     return name[: -len(GZIP_SUFFIX)] if name.lower().endswith(GZIP_SUFFIX) else name
 
@@ -1094,7 +1098,7 @@ def _gathered(frames: Iterator[tuple[float, int, bytes, bool]], stats: LogStats,
 class _PycanWriter:
     """A python-can writer behind the candump writer's ``write(timestamp, id, data)``."""
 
-    def __init__(self, path: Path, fmt: str) -> None:
+    def __init__(self, path: Path, fmt: str, stream: IO[str] | None = None) -> None:
         import can
 
         self.name = str(path)
@@ -1114,7 +1118,7 @@ class _PycanWriter:
             from can.io.trc import TRCWriter
 
             cls = {"asc": ASCWriter, "blf": BLFWriter, "trc": TRCWriter, "csv": CSVWriter}[fmt]
-            self._writer = cls(path)
+            self._writer = cls(path if stream is None else stream)
         self._on_message = self._writer.on_message_received
 
     def write(self, timestamp: float, frame_id: int, data: bytes, *, extended: bool | None = None, **_: Any) -> None:
@@ -1211,9 +1215,12 @@ def writer_format(path: str | Path) -> str:
     if not path.suffix:
         return "candump"
     if path.name.lower().endswith(GZIP_SUFFIX):
-        raise LogFormatError(
-            f"{path}: outputs are not compressed: name it without {GZIP_SUFFIX} (and compress it after)"
-        )
+        inner = format_of_extension(path)
+        if inner is not None and inner not in GZIP_WRITABLE and inner not in READ_ONLY:
+            raise LogFormatError(
+                f"{path}: {FORMATS[inner]} is not written compressed (only candump, ASC, TRC and CSV are): name it "
+                f"without {GZIP_SUFFIX}"
+            )
     if format_of_extension(path) in READ_ONLY:
         raise LogFormatError(f"{path}: text logs are read, not written: name the output .log (candump -L)")
     fmt = format_of_extension(path)
@@ -1230,6 +1237,11 @@ def open_writer(path: str | Path, channel: str = "vcan0") -> Any:
     their numbering). Raises ``LogFormatError`` for an unknown extension or a missing ``mf4`` extra."""
     path = Path(path)
     fmt = writer_format(path)
+    if path.name.lower().endswith(GZIP_SUFFIX):  # a text format (writer_format), written through gzip
+        stream = compressed.text_writer(path)
+        if fmt == "candump":
+            return CandumpWriter(stream, channel=channel)
+        return _PycanWriter(path, fmt, stream)
     if fmt == "candump":
         return CandumpWriter(path, channel=channel)
     if fmt == "db":
