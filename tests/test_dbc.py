@@ -202,6 +202,17 @@ def test_contract_signal(db, msg: str, sig: str, unit: str | None, res: float, l
     assert s.comment, f"{msg}.{sig} has no CM_"
 
 
+def test_the_attitude_filter_knows_the_gyros_full_scale(db) -> None:
+    """A reading at IMU_Rates' range is a saturated gyro to the attitude filter (core.attitude.GYRO_FULL_SCALE:
+    the core does not read the DBC, so this test holds the two together)."""
+    from ptw_rt.core.attitude import GYRO_FULL_SCALE
+
+    rates = db.get_message_by_name("IMU_Rates")
+    for name in ("RollRate", "PitchRate", "YawRate"):
+        signal = rates.get_signal_by_name(name)
+        assert (signal.minimum, signal.maximum) == (-GYRO_FULL_SCALE, GYRO_FULL_SCALE)
+
+
 def test_steer_count_is_raw_10_bit(db) -> None:
     s = db.get_message_by_name("Steer_Encoder").get_signal_by_name("SteerCount")
     assert (s.length, s.scale, s.offset, s.is_signed) == (10, 1, 0, False)

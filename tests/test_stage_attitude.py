@@ -99,6 +99,27 @@ def test_a_held_rate_grows_the_roll_uncertainty_with_the_length_of_the_hold(sett
     assert st[att.ST_HELD] == 0
 
 
+def test_a_gyro_at_its_full_scale_grows_the_roll_uncertainty_like_a_held_rate(settings, design):
+    """A fall: the roll rate passed the gyro's 3 rad/s while it read 3.0, and the roll integrated from it ran 5 deg
+    behind, VALID (random set 81, `radius_accel` seed 8539, at the ride's end). A reading at full scale is a bound,
+    not the rate: the roll's uncertainty grows as a held rate's, enough within 4 cycles to end the roll's VALID
+    (3 sd within its 3 deg tolerance), and the stage says the gyro saturated (the supervisor drops the roll rate)."""
+    b = att.STAGE.alone(settings, design)
+    speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=15.0, known=1.0)
+    for k in range(3000):  # riding straight at 15 m/s, GPS courses at 10 Hz
+        inputs = _inputs(0.0, 0.0, 0.0, 0.0, -G, 0.0, k % 10 == 0 and k > 10)
+        att.attitude_stage(b.state, b.params, b.outputs, inputs, speed)
+    sd0 = b.outputs[att.OUT_ROLL_SD]
+    assert b.outputs[att.OUT_SATURATED] == 0.0 and 3.0 * sd0 < math.radians(3.0)  # the roll VALID
+    for _ in range(4):
+        att.attitude_stage(b.state, b.params, b.outputs, _inputs(att.GYRO_FULL_SCALE, 0.0, 0.0, 0.0, -G), speed)
+        assert b.outputs[att.OUT_SATURATED] == 1.0
+    assert b.outputs[att.OUT_ROLL_SD] > sd0 + math.radians(0.5)  # a sound rate's 4 cycles: a few hundredths
+    assert 3.0 * b.outputs[att.OUT_ROLL_SD] > math.radians(3.0)  # no longer VALID
+    att.attitude_stage(b.state, b.params, b.outputs, _inputs(2.9, 0.0, 0.0, 0.0, -G), speed)
+    assert b.outputs[att.OUT_SATURATED] == 0.0
+
+
 def test_a_burst_of_corrupt_input_reopens_the_biases_when_it_ends(settings, design):
     """Garbage that passed every check may have moved the biases along what a steady turn cannot observe: after
     a burst of BURST_CYCLES or more cycles of corrupt input, the biases' and the roll's variances are reopened

@@ -30,12 +30,14 @@ def _step(
     tyres=None,
     turn=None,
     inconsistent=0.0,
+    saturated=0.0,
 ):
     imu_ok = core_ok if imu_ok is None else imu_ok
     inputs = inp.OUTPUTS.vector({"core_ok": core_ok, "imu_ok": imu_ok, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
     speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=known)
     attitude = att.OUTPUTS.vector(
-        {"ok": 1.0, "roll_sd": roll_sd, "rejected_run": rejected, "inconsistent": inconsistent}, strict=False
+        {"ok": 1.0, "roll_sd": roll_sd, "rejected_run": rejected, "inconsistent": inconsistent, "saturated": saturated},
+        strict=False,
     )
     cond = cnd.OUTPUTS.vector({"run": run, "reasons": reasons, **(turn or {})}, strict=False)
     diag = dia.OUTPUTS.vector({}, strict=False)
@@ -69,6 +71,14 @@ def _step(
 def test_modes(settings, design, kw, mode):
     b = sup.STAGE.alone(settings, design)
     assert _step(b, **kw)[0] == mode
+
+
+def test_a_saturated_gyro_is_no_valid_roll_rate(settings, design):
+    """A gyro at its full scale reads less than the body turns (the attitude stage's `saturated`)."""
+    b = sup.STAGE.alone(settings, design)
+    assert _step(b)[2] & lay.V_ROLL_RATE
+    valid = _step(b, saturated=1.0)[2]
+    assert not valid & lay.V_ROLL_RATE and valid & lay.V_STEER
 
 
 def test_an_event_is_held_a_state_is_not(settings, design):

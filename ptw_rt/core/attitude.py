@@ -116,6 +116,12 @@ STATE = Layout(
 STATE_SIZE = STATE.size
 # rad/s: what a rate not measured this cycle (held, frozen or corrupt frames) may be, as far as the filter knows
 UNMEASURED_RATE_SD = 0.5
+# rad/s: the gyros' full scale, IMU_Rates' range in the DBC (tests/test_dbc.py holds the two together). A reading at
+# it is a body turning at least that fast: in a fall the roll rate reached 6 rad/s while the gyro read 3.0, and the
+# integrated roll ran 5 deg behind, VALID (random set 81, `radius_accel` seed 8539). Such a rate is as unknown as a
+# held one (UNMEASURED_RATE_SD), and the roll's and the heading's uncertainty grow alike
+GYRO_FULL_SCALE = 3.0
+GYRO_SATURATED = GYRO_FULL_SCALE - 1e-3  # one count of the frame's 0.0001 rad/s, and margin
 # m/s^2: the most lateral acceleration a tyre can give (~1.2 g); what scales the sideslip's noise is bounded by it,
 # so no roll (near 90 deg, tan grows without bound) can blow the covariance up
 MAX_LATERAL_ACCEL = 12.0
@@ -249,6 +255,7 @@ OUTPUTS = Layout(
     rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
     consistency=1,  # the larger running mean of the whitened innovations, in standard deviations of a white mean
     inconsistent=1,  # 1: the innovations say the roll (or a gyro) is not what the filter believes
+    saturated=1,  # 1: a gyro reads its full scale this cycle (the body turns faster than it can say)
 )
 (
     OUT_ROLL,
@@ -272,6 +279,7 @@ OUTPUTS = Layout(
     OUT_REJECTED_RUN,
     OUT_CONSISTENCY,
     OUT_INCONSISTENT,
+    OUT_SATURATED,
 ) = OUTPUTS.offsets
 N_FILTER_OUT = OUT_BAY_SD + 1  # what `attitude_step` writes
 OUT_SIZE = OUTPUTS.size
@@ -462,10 +470,12 @@ def attitude_step(
     course: float,
     course_new: bool,
     standstill: bool,
+    saturated: bool = False,
 ) -> None:
     """One cycle. p, q, r: body rates [rad/s]; f_y, f_z: body specific force [m/s^2]; u: forward speed and
     u_sd its standard deviation [m/s]; course [rad] valid when course_new (a fresh GPS fix at speed);
-    standstill: the vehicle is known to stand still (zero rates and sideslip)."""
+    standstill: the vehicle is known to stand still (zero rates and sideslip); saturated: a gyro reads its full
+    scale (GYRO_FULL_SCALE: the rate integrated is a bound, not the rate)."""
     dt = prm[A_DT]
     g = prm[A_G]
     h = prm[A_IMU_HEIGHT]
@@ -650,9 +660,9 @@ def attitude_step(
         P[i, X_AV] -= dt * FP[i, X_AV] / ta
     P[X_PHI, X_PHI] += prm[A_Q_ROLL] ** 2 * dt
     P[X_PSI, X_PSI] += prm[A_Q_HEADING] ** 2 * dt
-    if not rates_ok:
-        # integrated a held rate: its error is the same every held cycle, so the roll's and heading's grow with
-        # the run's length (n held cycles: n UNMEASURED_RATE_SD dt), not with its square root
+    if not rates_ok or saturated:
+        # integrated a held (or saturated) rate: its error is the same every such cycle, so the roll's and heading's
+        # grow with the run's length (n cycles: n UNMEASURED_RATE_SD dt), not with its square root
         st[ST_HELD] += 1.0
         grow = (2.0 * st[ST_HELD] - 1.0) * (UNMEASURED_RATE_SD * dt) ** 2
         P[X_PHI, X_PHI] += grow
@@ -754,6 +764,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
     )
     # the age of the GPS speed the speed filter last took: a refused or doubted fix corrects nothing
     speed_sd = 0.1 + 0.5 * min(max(inputs[inp.OUT_GPS_AGE], speed[spd.OUT_GPS_AGE]), 10.0)
+    saturated = max(abs(raw[inp.RAW_P]), abs(raw[inp.RAW_Q]), abs(raw[inp.RAW_R])) >= GYRO_SATURATED
     force = math.sqrt(raw[inp.RAW_AX] ** 2 + raw[inp.RAW_AY] ** 2 + raw[inp.RAW_AZ] ** 2)
     accel_plausible = ACCEL_TRUSTED_MIN_G * prm[A_G] <= force <= ACCEL_TRUSTED_MAX_G * prm[A_G]
     attitude_step(
@@ -772,6 +783,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         inputs[inp.OUT_COURSE],
         inputs[inp.OUT_COURSE_NEW] != 0.0 and speed[spd.OUT_GPS_DOUBTED] == 0.0,  # a doubted receiver's course too
         standstill,
+        saturated,
     )
     if reasons_now & _CORRUPT_INPUT:
         st[ST_CORRUPT_RUN] += 1.0
@@ -785,6 +797,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         if st[ST_CLEAN_RUN] >= BURST_GAP:
             st[ST_CORRUPT_RUN] = 0.0
     out[OUT_OK] = 1.0 if st[ST_INIT] == 1.0 and all_finite(out, N_FILTER_OUT) else 0.0
+    out[OUT_SATURATED] = 1.0 if saturated else 0.0
     out[OUT_REJECTED_RUN] = st[ST_REJECTED]
     # re-learning the biases is for riding; at a stop the zero-rate calibration reads them, and a rider rocking
     # the scooter there is motion the filter cannot model, not a bias

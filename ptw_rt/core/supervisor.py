@@ -447,7 +447,9 @@ def supervisor_stage(
     # (a yaw gyro whose sign flipped: the steer estimate 1.5 deg, v_y 0.7 m/s and the front force 252 N off, VALID
     # for 5.5 s while the roll and the torque had dropped theirs; daemon fuzzing, 2026-11-26)
     if core_ok and not steer_implausible and not corrupt and attitude_consistent:
-        valid |= V_STEER | V_ROLL_RATE  # the roll rate is the gyro less a bias the monitor doubts
+        valid |= V_STEER
+        if attitude[att.OUT_SATURATED] == 0.0:  # a gyro at its full scale reads less than the body turns
+            valid |= V_ROLL_RATE  # the roll rate is the gyro less a bias the monitor doubts
     # roll is valid from its own uncertainty: 3 sigma within the documented tolerance, filter consistent
     roll_sd = attitude[att.OUT_ROLL_SD] if attitude[att.OUT_OK] != 0.0 else math.inf
     if (
