@@ -136,6 +136,10 @@ class SqliteLogWriter:
             if path.is_file():
                 path.unlink()  # python-can's writer appends to a table already there: an output is replaced
             self._conn: sqlite3.Connection | None = sqlite3.connect(str(path), isolation_level=None)
+            # a new file written once: no rollback journal beside it (a failed replay removes the output, and a
+            # `-journal` file would be left behind), and no fsync per batch (the replay's other outputs have none)
+            self._conn.execute("PRAGMA journal_mode = OFF")
+            self._conn.execute("PRAGMA synchronous = OFF")
             self._conn.execute(
                 f"CREATE TABLE {TABLE} (ts REAL, arbitration_id INTEGER, extended INTEGER, remote INTEGER, "
                 "error INTEGER, dlc INTEGER, data BLOB)"
