@@ -207,6 +207,21 @@ def excerpt(value: Any, limit: int = EXCERPT_CHARS) -> str:
 _CONTROL_ESCAPES = {c: f"\\x{c:02x}" for c in (*range(32), 127)}
 
 
+def error_text(exc: object, limit: int = 80) -> str:
+    """An exception's message (its type's name when it has none) as a message fragment: its first ``limit``
+    characters, ASCII-escaped (a parser's error quotes the untrusted bytes it choked on)."""
+    text = str(exc) or type(exc).__name__
+    return ascii(text[:limit])[1:-1]
+
+
+def file_size(fh: IO[bytes]) -> int:
+    """The size of an open file, 0 when it has none (a pipe, a closed file)."""
+    try:
+        return os.fstat(fh.fileno()).st_size
+    except (OSError, ValueError):
+        return 0
+
+
 def short_text(text: str, limit: int = 120) -> str:
     """A message fragment (e.g. a parser's problem text) on one line, ASCII-escaped (control characters too), at
     most ``limit`` chars."""

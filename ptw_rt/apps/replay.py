@@ -486,7 +486,7 @@ def _collect_logs(
             st = p.stat()
         except OSError as exc:
             if several:
-                files.append((p, _output_name(p)))
+                files.append((p, Path(output_name(p))))
                 continue
             if isinstance(exc, FileNotFoundError):
                 raise UserFacingError(f"CAN log not found: {p}") from None
@@ -500,17 +500,10 @@ def _collect_logs(
                 )
             files.extend(found)
         elif stat.S_ISREG(st.st_mode) or several:
-            files.append((p, _output_name(p)))
+            files.append((p, Path(output_name(p))))
         else:
             raise UserFacingError(f"{p}: CAN log is {file_kind(st.st_mode)}, not a regular file")
     return files, any_dir
-
-
-def _output_name(p: Path) -> Path:
-    """A log given directly keeps its name for its output, and with it its format (``logformats.output_name``: a
-    compressed one's without ``.gz``, candump's for a format read only or an unknown extension: a list's
-    `ride.bin`, a FIFO)."""
-    return Path(output_name(p))
 
 
 def _logs_below(top: Path, exclude: Path | None) -> list[Path]:

@@ -28,7 +28,7 @@ import zlib
 from pathlib import Path
 from typing import IO
 
-from ptw_rt.untrusted import open_binary
+from ptw_rt.untrusted import error_text, file_size, open_binary
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ class GzipLog:
         self._raw = raw
         self.name = name
         self._error = error
-        self.compressed_size = _size(raw)
+        self.compressed_size = file_size(raw)
         self.limit = min(max_bytes, MAX_EXPANSION * self.compressed_size + EXPANSION_SLACK)
         self._gz = gzip.GzipFile(fileobj=raw, mode="rb")
         self._pos = 0  # the reader's position in the data
@@ -105,7 +105,7 @@ class GzipLog:
             except (EOFError, gzip.BadGzipFile, zlib.error, OSError) as exc:
                 # a truncated or corrupt stream: what came before is good data; the rest is lost, said once
                 self.problem = (
-                    f"compressed stream ends early at byte {self._inflated + got} of its data ({_short(exc)})"
+                    f"compressed stream ends early at byte {self._inflated + got} of its data ({error_text(exc)})"
                 )
                 log.warning("%s: %s: read up to there", self.name, self.problem)
                 break
@@ -178,15 +178,3 @@ def position(fh: IO[bytes] | GzipLog) -> int:
     if isinstance(fh, GzipLog):
         return fh.compressed_position
     return fh.tell()
-
-
-def _size(fh: IO[bytes]) -> int:
-    try:
-        return os.fstat(fh.fileno()).st_size
-    except (OSError, ValueError):
-        return 0
-
-
-def _short(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
-    return ascii(text[:80])[1:-1]

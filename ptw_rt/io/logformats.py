@@ -60,6 +60,7 @@ from ptw_rt.io.candump import (
     text_blocks,
     timestamp_problem,
 )
+from ptw_rt.untrusted import error_text, file_size
 
 __all__ = [
     "EXTENSIONS",
@@ -237,7 +238,7 @@ def detect_format(path: str | Path, max_bytes: int = MAX_LOG_BYTES, *, warn: boo
     too large, unreadable), ``EmptyLogError`` (0 bytes) or ``NotACanLogError``."""
     with compressed.open_log_file(path, max_bytes=max_bytes, what="CAN log", error=CandumpFileError) as fh:
         head = fh.read(SNIFF_BYTES)
-        size = _size(fh)  # the file's: a compressed log's progress counts compressed bytes
+        size = file_size(fh)  # the file's: a compressed log's progress counts compressed bytes
     if not head:
         raise EmptyLogError(f"{path}: empty log ({'nothing decompressed' if size else '0 bytes'})")
     framed, headed = sniff(head)
@@ -273,15 +274,6 @@ def _deltas(head: bytes) -> bool:
         return False
     back = sum(b < a for a, b in zip(stamps, stamps[1:], strict=False))
     return back >= 0.1 * (len(stamps) - 1)
-
-
-def _size(fh: IO[bytes]) -> int:
-    try:
-        import os
-
-        return os.fstat(fh.fileno()).st_size
-    except (OSError, ValueError):
-        return 0
 
 
 # ---------------------------------------------------------------------- stats
@@ -464,7 +456,7 @@ class _TextReader(_MessageReader):
         except Exception as exc:  # noqa: BLE001 - python-can on untrusted content: any error is the file's
             for n in feed.too_long:
                 yield Problem(n, too_long, "", "too_long")
-            raise LogFormatError(f"{self.path}: unreadable {self.unit.split()[0]} header ({_short(exc)})") from None
+            raise LogFormatError(f"{self.path}: unreadable {self.unit.split()[0]} header ({error_text(exc)})") from None
         lines = feed
         if first is not None:
             lines = _prepend(first, feed)
@@ -478,7 +470,7 @@ class _TextReader(_MessageReader):
             try:
                 msg = self._parse(reader, line)
             except Exception as exc:  # noqa: BLE001 - as above
-                yield Problem(n, _short(exc), line, "malformed")
+                yield Problem(n, error_text(exc), line, "malformed")
                 continue
             if msg is None:
                 continue
@@ -492,11 +484,6 @@ class _TextReader(_MessageReader):
 def _prepend(first: str, rest: _LineFeed) -> Iterator[str]:
     yield first
     yield from rest
-
-
-def _short(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
-    return ascii(text[:80])[1:-1]
 
 
 class _AscReader(_TextReader):
@@ -608,7 +595,7 @@ class _CandumpTextReader(_LineReader):
         try:
             ts = _candump_t_time(stamp)
         except (ValueError, OverflowError) as exc:
-            return Problem(n, _short(exc), text, "bad_timestamp")
+            return Problem(n, error_text(exc), text, "bad_timestamp")
         if self.deltas:  # the time since the frame before: the times are their running sum, from 0
             self._clock += ts
             ts = self._clock
@@ -622,7 +609,7 @@ class _CandumpTextReader(_LineReader):
         try:
             payload = bytes.fromhex(rest)
         except ValueError as exc:
-            return Problem(n, _short(exc), text, "malformed")
+            return Problem(n, error_text(exc), text, "malformed")
         if len(payload) != size:
             return Problem(n, f"[{size}] with {len(payload)} data bytes", text, "malformed")
         return _frame(ts, channel, int(ident, 16), payload, n, len(ident) == 8)
@@ -648,7 +635,7 @@ class _PycanTextReader(_LineReader):
         try:
             ts = float(stamp)
         except ValueError as exc:
-            return Problem(n, _short(exc), text, "bad_timestamp")
+            return Problem(n, error_text(exc), text, "bad_timestamp")
         marks = flags.split()
         if "E" in marks:
             self._skip("error")
@@ -693,7 +680,7 @@ class _CsvReader(_LineReader):
             payload = base64.b64decode(data, validate=True)
             int(dlc)
         except (ValueError, binascii.Error) as exc:
-            return Problem(n, _short(exc), text, "malformed")
+            return Problem(n, error_text(exc), text, "malformed")
         if error == "1":
             self._skip("error")
         elif remote == "1":
@@ -914,7 +901,7 @@ class _RecordReader(_MessageReader):
     def _hand_over(self) -> int:
         """Close the checked file for the library to open by its path; its size. A compressed one is refused:
         the library cannot read a stream."""
-        size = _size(self._fh)
+        size = file_size(self._fh)
         gzipped = compressed.is_compressed(self._fh)
         self._fh.close()
         if gzipped:

@@ -29,6 +29,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from ptw_rt.untrusted import error_text
+
 MAGIC = b"SQLite format 3\x00"
 TABLE = "messages"
 COLUMNS = ("ts", "arbitration_id", "extended", "remote", "error", "dlc", "data")
@@ -54,7 +56,7 @@ def rows(path: str | Path, size: int, declared: Callable[[int], None] | None = N
     try:
         conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=True)
     except sqlite3.Error as exc:
-        raise SqliteLogError(f"unreadable SQLite file ({_short(exc)})") from None
+        raise SqliteLogError(f"unreadable SQLite file ({error_text(exc)})") from None
     deadline = time.monotonic() + TIME_BUDGET_S + TIME_PER_MB_S * size / 1e6
     interrupted = []
 
@@ -72,22 +74,22 @@ def rows(path: str | Path, size: int, declared: Callable[[int], None] | None = N
         try:
             kind = conn.execute("SELECT type FROM sqlite_master WHERE name = ?", (TABLE,)).fetchone()
         except sqlite3.Error as exc:
-            raise SqliteLogError(f"unreadable SQLite file ({_short(exc)})") from None
+            raise SqliteLogError(f"unreadable SQLite file ({error_text(exc)})") from None
         if kind is None:
             raise SqliteLogError(f"an SQLite file without python-can's table {TABLE!r}: not a CAN log")
         if kind[0] != "table":
-            raise SqliteLogError(f"{TABLE!r} is a {_short(kind[0])}, not a table: not read")
+            raise SqliteLogError(f"{TABLE!r} is a {error_text(kind[0])}, not a table: not read")
         try:
             names = {row[1] for row in conn.execute(f"PRAGMA table_info({TABLE})")}
         except sqlite3.Error as exc:
-            raise SqliteLogError(f"unreadable SQLite file ({_short(exc)})") from None
+            raise SqliteLogError(f"unreadable SQLite file ({error_text(exc)})") from None
         missing = [c for c in COLUMNS if c not in names]
         if missing:
             raise SqliteLogError(f"table {TABLE!r} is not python-can's (no column {', '.join(missing)})")
         try:
             cursor = conn.execute(f"SELECT {', '.join(COLUMNS)} FROM {TABLE}")  # noqa: S608 - constant names
         except sqlite3.Error as exc:  # a corrupt first page, the budget spent
-            yield 1, f"the file is not read: {'the time budget is spent' if interrupted else _short(exc)}"
+            yield 1, f"the file is not read: {'the time budget is spent' if interrupted else error_text(exc)}"
             return
         if declared is not None:
             try:
@@ -99,7 +101,7 @@ def rows(path: str | Path, size: int, declared: Callable[[int], None] | None = N
             try:
                 record = cursor.fetchone()
             except sqlite3.Error as exc:
-                why = "the time budget is spent" if interrupted else _short(exc)
+                why = "the time budget is spent" if interrupted else error_text(exc)
                 yield n + 1, f"the rest of the file is not read: {why}"
                 return
             if record is None:
@@ -187,9 +189,4 @@ class SqliteLogWriter:
 
 def _os_error(exc: sqlite3.Error) -> OSError:
     full = "full" in str(exc)
-    return OSError(errno.ENOSPC if full else errno.EIO, f"SQLite: {_short(exc)}")
-
-
-def _short(exc: object) -> str:
-    text = str(exc) or type(exc).__name__
-    return ascii(text[:80])[1:-1]
+    return OSError(errno.ENOSPC if full else errno.EIO, f"SQLite: {error_text(exc)}")
