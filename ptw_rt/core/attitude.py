@@ -753,17 +753,17 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
     u = speed[spd.OUT_U]
     speed_known = speed[spd.OUT_KNOWN] != 0.0
     reasons_now = int(inputs[inp.OUT_REASONS])
-    gps_believed = inputs[inp.OUT_GPS_LOST] == 0.0 and speed[spd.OUT_GPS_LOST] == 0.0
+    # the speed stage's GPS age and loss (no fix taken), never below the inputs stage's (no usable fix): a refused
+    # or doubted fix corrects nothing
     standstill = (
         speed_known
-        and gps_believed
+        and speed[spd.OUT_GPS_LOST] == 0.0
         and u < prm[A_CAL_SPEED]
         and reasons_now & ~REASON_SPEED_LOW == 0
         and abs(raw[inp.RAW_P] - st[ST_X + X_BP]) < prm[A_CAL_MAX_RATE]
         and abs(raw[inp.RAW_R] - st[ST_X + X_BR]) < prm[A_CAL_MAX_RATE]
     )
-    # the age of the GPS speed the speed filter last took: a refused or doubted fix corrects nothing
-    speed_sd = 0.1 + 0.5 * min(max(inputs[inp.OUT_GPS_AGE], speed[spd.OUT_GPS_AGE]), 10.0)
+    speed_sd = 0.1 + 0.5 * min(speed[spd.OUT_GPS_AGE], 10.0)
     saturated = max(abs(raw[inp.RAW_P]), abs(raw[inp.RAW_Q]), abs(raw[inp.RAW_R])) >= GYRO_SATURATED
     force = math.sqrt(raw[inp.RAW_AX] ** 2 + raw[inp.RAW_AY] ** 2 + raw[inp.RAW_AZ] ** 2)
     accel_plausible = ACCEL_TRUSTED_MIN_G * prm[A_G] <= force <= ACCEL_TRUSTED_MAX_G * prm[A_G]

@@ -184,8 +184,7 @@ def stiffness_stage(
         consistent = st[ST_AY_RESIDUAL_MS] < prm[P_ADAPT_MAX_RESIDUAL] * prm[P_ADAPT_MAX_RESIDUAL]
         allow = (
             inputs[inp.OUT_ACCEL_OK] != 0.0
-            and inputs[inp.OUT_GPS_LOST] == 0.0
-            and speed[spd.OUT_GPS_LOST] == 0.0
+            and speed[spd.OUT_GPS_LOST] == 0.0  # no fix taken for the hold time (none usable, or none believed)
             and lateral[lat.OUT_RUN_TIME] > prm[P_CONVERGE_TIME]
             and int(cond[cnd.OUT_REASONS]) == 0
             and consistent
