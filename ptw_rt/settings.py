@@ -106,7 +106,9 @@ TYRE_BANK_SCHEMA = Section(
         "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.15),
         "valid_log_sd": (Number("", ge=1e-3, le=0.2), 0.05),
         "valid_max_nis": (Number("", ge=0.5, le=1000), 6.0),
-        "valid_max_nis_fast": (Number("", ge=0.5, le=1000), 12.0),
+        # 10, not 12 (2026-11-26): with `valid_untested_time`, what keeps a road that changes in a corner from being
+        # published VALID more than 20 % off (docs/estimator.md, "A road that changes where nothing tests the tyres")
+        "valid_max_nis_fast": (Number("", ge=0.5, le=1000), 10.0),
         # s the tyres stay not VALID after a short-window inconsistency (a road that changed shows there first);
         # 0.5, not 2 (2026-11-26): a slalom on soft tyres spikes it for 0.1-0.4 s at every peak, and 2 s after each
         # left `slalom_30` x0.7 VALID for 18-45 % of its second half on four of five noise seeds
@@ -116,6 +118,10 @@ TYRE_BANK_SCHEMA = Section(
         # lean beyond the linear range right after a road change moved the bank half-way) has not settled
         "settle_learning_time": (Number("s", ge=0), 0.5),
         "valid_min_evidence": (Number("s", ge=0), 2.0),
+        # s the tyres stay VALID after the last cycle whose data tested them (learning, on data the model explains):
+        # in a corner beyond `max_learning_roll`, on a straight road or a steady one nothing tests them, and a road
+        # that changes there shows only in the short-window NIS, 0.2-0.4 s and 20-45 % late (docs/estimator.md)
+        "valid_untested_time": (Number("s", gt=0, le=3600), 1.0),
         "min_learning_speed": (Number("m/s", gt=0, le=100), 8.0),
         # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
         # kinematic steer the slip angles are measured against; learning waits while that could move k by more
@@ -380,6 +386,7 @@ class TyreBankTuning:
     min_learning_speed: float
     max_learning_bias_share: float
     valid_min_evidence: float
+    valid_untested_time: float
     bias_window: float
     excitation_window: float
     min_excitation_lateral_accel: float

@@ -237,6 +237,25 @@ def test_learning_the_model_did_not_explain_does_not_test_an_estimate(settings, 
     assert not any(learned[:-2]) and learned[-1] == bits
 
 
+def test_an_estimate_nothing_tests_any_longer_lapses(settings, design):
+    """`mu_drop`, random ride sets 61, 71, 81 and 101 (one ride in 200 each): learning stops at the lean beyond the
+    learning range, the road's grip halves 1 s into the corner, and the tyres stayed VALID until the short-window
+    NIS caught it, 23-45 % off. VALID lapses `tyre_untested` s after the last cycle that tested the estimate, and
+    comes back with the next one."""
+    b = sup.STAGE.alone(settings, design)
+    dt, untested = b.params[sup.P_DT], b.params[sup.P_TYRE_UNTESTED]
+    assert 0.0 < untested <= 2.0
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_scale": 0.87, "tyre_evidence": 5.0}
+    bits = lay.V_CORNERING | lay.V_CAMBER
+    for _ in range(int(round(5.0 / dt))):
+        flags = _step(b, tyres={**good, "tyre_learning": 1.0})[2] & bits
+    assert flags == bits
+    idle = [_step(b, tyres={**good, "tyre_learning": 0.0})[2] & bits for _ in range(int(round(2.0 * untested / dt)))]
+    lapse = int(round(untested / dt))
+    assert all(f == bits for f in idle[: lapse - 1]) and not any(idle[lapse + 1 :])
+    assert _step(b, tyres={**good, "tyre_learning": 1.0})[2] & bits == bits
+
+
 def test_an_estimate_that_moves_beyond_its_spread_starts_settling_again(settings, design):
     """The most likely hypothesis is a 15 % grid cell: within one, a road change moved the estimate by 8 % while it
     stayed VALID (48 % off). A move beyond the claimed spread (`tyre_valid_log_sd` in log k) from where the

@@ -92,6 +92,7 @@ STATE = Layout(
     steer_slip=1,  # rad: running mean of the slip difference (what an error of the tyres' scale would scale)
     steer_implausible_until=1,  # s: the steer-kinematics alarm holds until this
     model_doubted_until=1,  # s: the torque is not VALID before this (no tyre filter explained the data)
+    tyre_tested_at=1,  # s: the last cycle whose data tested the tyre estimate (learning, on data it explains)
 )
 (
     ST_TIME,
@@ -108,6 +109,7 @@ STATE = Layout(
     ST_STEER_SLIP,
     ST_STEER_IMPLAUSIBLE_UNTIL,
     ST_MODEL_DOUBTED_UNTIL,
+    ST_TYRE_TESTED_AT,
 ) = STATE.offsets
 MAX_BANDS = 8  # speed bands of the plausibility threshold
 CORRUPT_INPUT = REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
@@ -139,6 +141,7 @@ PARAMS = Layout(
     tyre_settle=1,  # s the estimate must have stayed within tyre_valid_log_sd of where it settled ...
     tyre_settle_learning=1,  # ... of which this long learning
     tyre_min_evidence=1,  # s of learning cycles (the lateral stage's faded count) the estimate must rest on
+    tyre_untested=1,  # s the estimate stays valid after the last cycle that tested it
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
@@ -171,6 +174,7 @@ PARAMS = Layout(
     P_TYRE_SETTLE,
     P_TYRE_SETTLE_LEARNING,
     P_TYRE_MIN_EVIDENCE,
+    P_TYRE_UNTESTED,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
     P_PLAUSIBILITY_LAG,
@@ -225,6 +229,7 @@ def build_params(settings, design) -> np.ndarray:
         tyre_settle=est.tyre_bank.settle_time,
         tyre_settle_learning=est.tyre_bank.settle_learning_time,
         tyre_min_evidence=est.tyre_bank.valid_min_evidence,
+        tyre_untested=est.tyre_bank.valid_untested_time,
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
@@ -494,6 +499,8 @@ def supervisor_stage(
         # learning tests the estimate only on data the model explains: settled while learning at a 2 s NIS of 10-12,
         # then consistent in a slow corner that taught it nothing, it was VALID 24.5 % off (random set 41, `urban`)
         st[ST_TYRE_TESTED_FOR] += prm[P_DT]
+    if lateral[lat.OUT_TYRE_LEARNING] != 0.0 and lateral[lat.OUT_TYRE_NIS] <= prm[P_TYRE_VALID_MAX_NIS]:
+        st[ST_TYRE_TESTED_AT] = t
     if (
         run
         and run_time >= prm[P_CONVERGE_TIME]
@@ -503,6 +510,10 @@ def supervisor_stage(
         and t >= st[ST_TYRE_ALARM_UNTIL]
         and t - st[ST_TYRE_STABLE_SINCE] >= prm[P_TYRE_SETTLE]
         and st[ST_TYRE_TESTED_FOR] >= prm[P_TYRE_SETTLE_LEARNING]
+        # and tested lately: where nothing tests the tyres (a lean beyond the learning range, a straight road) the
+        # road can change unseen; a mu drop 1 s into a corner was VALID 23-45 % off before the short-window NIS
+        # caught it (random sets 61, 71, 81, 101; docs/estimator.md, "A road that changes where nothing tests")
+        and t - st[ST_TYRE_TESTED_AT] <= prm[P_TYRE_UNTESTED]
         and lateral[lat.OUT_TYRE_EVIDENCE] >= prm[P_TYRE_MIN_EVIDENCE]  # what it rests on (lateral stage)
     ):
         valid |= V_CORNERING | V_CAMBER
