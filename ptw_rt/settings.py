@@ -122,6 +122,13 @@ TYRE_BANK_SCHEMA = Section(
         # in a corner beyond `max_learning_roll`, on a straight road or a steady one nothing tests them, and a road
         # that changes there shows only in the short-window NIS, 0.2-0.4 s and 20-45 % late (docs/estimator.md)
         "valid_untested_time": (Number("s", gt=0, le=3600), 1.0),
+        # the change statistic (a CUSUM of how much better a neighbouring tyre explains each cycle than the most
+        # likely one, less `change_drift` nats, fading with `change_memory`): above `valid_max_change` the tyres are
+        # inconsistent, as with the short-window NIS; a road changing as the lean falls into the learning range
+        # fits the old tyre within its NIS (docs/estimator.md, "A road that changes where nothing tests the tyres")
+        "change_drift": (Number("", gt=0, le=100), 1.0),
+        "change_memory": (Number("s", gt=0, le=60), 0.3),
+        "valid_max_change": (Number("", gt=0, le=1e4), 5.0),
         "min_learning_speed": (Number("m/s", gt=0, le=100), 8.0),
         # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
         # kinematic steer the slip angles are measured against; learning waits while that could move k by more
@@ -387,6 +394,9 @@ class TyreBankTuning:
     max_learning_bias_share: float
     valid_min_evidence: float
     valid_untested_time: float
+    change_drift: float
+    change_memory: float
+    valid_max_change: float
     bias_window: float
     excitation_window: float
     min_excitation_lateral_accel: float

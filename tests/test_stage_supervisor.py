@@ -256,6 +256,22 @@ def test_an_estimate_nothing_tests_any_longer_lapses(settings, design):
     assert _step(b, tyres={**good, "tyre_learning": 1.0})[2] & bits == bits
 
 
+def test_a_neighbouring_tyre_that_explains_the_data_better_is_an_inconsistency(settings, design):
+    """`mu_drop` seed 8512 of random set 35: the road changed as the lean came into the learning range, the
+    short-window NIS stayed at 5.4-6.7 while the error grew from 20 to 66 %, VALID. The bank's change statistic
+    above `tyre_valid_max_change` drops VALID for `tyre_hold` s, as the short-window NIS does."""
+    b = sup.STAGE.alone(settings, design)
+    dt, hold, limit = b.params[sup.P_DT], b.params[sup.P_TYRE_HOLD], b.params[sup.P_TYRE_VALID_MAX_CHANGE]
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 5.5, "tyre_scale": 0.76, "tyre_evidence": 5.0}
+    bits = lay.V_CORNERING | lay.V_CAMBER
+    for _ in range(int(round(5.0 / dt))):
+        flags = _step(b, tyres={**good, "tyre_learning": 1.0, "tyre_change": 0.5 * limit})[2] & bits
+    assert flags == bits
+    assert not _step(b, tyres={**good, "tyre_learning": 1.0, "tyre_change": 2.0 * limit})[2] & bits
+    held = [_step(b, tyres={**good, "tyre_learning": 1.0})[2] & bits for _ in range(int(round(hold / dt)) + 2)]
+    assert not any(held[:-3]) and held[-1] == bits
+
+
 def test_an_estimate_that_moves_beyond_its_spread_starts_settling_again(settings, design):
     """The most likely hypothesis is a 15 % grid cell: within one, a road change moved the estimate by 8 % while it
     stayed VALID (48 % off). A move beyond the claimed spread (`tyre_valid_log_sd` in log k) from where the

@@ -34,10 +34,14 @@ def bank():
     return s, tuning, grid, tables
 
 
-def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0):
-    """y per cycle from the linear model whose tyres are k_true x nominal (no nonlinear terms)."""
+def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0, k_after: float | None = None, at: float = 0.0):
+    """y per cycle from the linear model whose tyres are k_true x nominal (no nonlinear terms); `k_after`: the tyres
+    from `at` s on (a road that changes)."""
     p = s.vehicle.scaled(stiffness=k_true)
     Phi, _, _ = dk.design_point(p, U, DT, s.estimator.kalman)
+    Phi_after = (
+        Phi if k_after is None else dk.design_point(s.vehicle.scaled(stiffness=k_after), U, DT, s.estimator.kalman)[0]
+    )
     C = dk.output_matrix(p)
     rng = np.random.default_rng(seed)
     tun = s.estimator.kalman
@@ -49,7 +53,7 @@ def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0):
         t = k * DT
         x[ck.TAU] = (9.0 * math.sin(1.3 * t) + 6.0 * math.sin(3.1 * t + 1.0)) if excite else 0.0
         Y[k] = C @ x + noise * rng.standard_normal(ck.N_Y)
-        x = Phi @ x
+        x = (Phi if t < at or k_after is None else Phi_after) @ x
     return Y
 
 
@@ -68,14 +72,14 @@ def _run(bank, Y, start: float = 1.0, half_width: int | None = None, learn: bool
     scratch = np.zeros(tb.SCRATCH_SIZE)
     C = dk.output_matrix(s.vehicle)
     no_correction = np.zeros(7)  # the plant is linear: no nonlinear correction
-    trace = np.zeros((len(Y), 3))
+    trace = np.zeros((len(Y), 4))
     states = np.zeros((len(Y), ck.N_Z))
     for k, y in enumerate(Y):
         tb.bank_step(
             st, out, scratch, prm, y, U, y[4], True, True, learn, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
             t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"], *pub,
         )  # fmt: skip
-        trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS]
+        trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS], out[tb.OUT_CHANGE]
         states[k] = out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]
     return trace, out, states
 
@@ -101,6 +105,19 @@ def test_claims_nothing_without_excitation(bank):
     trace, out, _ = _run(bank, _ride(bank[0], 0.769, 30.0, excite=False))
     assert out[tb.OUT_LOG_SD] > 0.15
     assert np.all(trace[:, 1] > 0.15)
+
+
+def test_a_road_that_changes_is_seen_by_the_change_statistic_before_the_estimate_moves(bank):
+    """The tyres x1.0 for 20 s, then x0.769 (one hypothesis down) with nothing learned (a lean beyond the learning
+    range): the estimate cannot move, and the change statistic passes `valid_max_change` within 1 s of the change;
+    on the ride whose tyres stay, it stays below it after the first 5 s."""
+    s, tuning = bank[0], bank[1]
+    limit = tuning.valid_max_change
+    steady, _, _ = _run(bank, _ride(s, 1.0, 40.0, excite=True, seed=5))
+    assert steady[int(5.0 / DT) :, 3].max() < limit
+    changed, _, _ = _run(bank, _ride(s, 1.0, 25.0, excite=True, seed=5, k_after=0.769, at=20.0), learn=False)
+    assert changed[int(5.0 / DT) : int(20.0 / DT), 3].max() < limit
+    assert changed[int(20.0 / DT) : int(21.0 / DT), 3].max() > limit
 
 
 def test_mixture_is_a_filter_estimate(bank):

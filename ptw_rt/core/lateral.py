@@ -95,6 +95,7 @@ OUTPUTS = Layout(
     tyre_learning=1,  # 1: this cycle's evidence moved the estimate
     tyre_evidence=1,  # s of such cycles behind the estimate, faded with the bank's memories (what validity rests on)
     tyre_operating_scale=1,  # k the mixture runs on (evidence at any lean: near saturation, the secant slope)
+    tyre_change=1,  # nats: the bank's change statistic (a neighbouring tyre explains the last cycles better)
     tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
 )
 (
@@ -108,6 +109,7 @@ OUTPUTS = Layout(
     OUT_TYRE_LEARNING,
     OUT_TYRE_EVIDENCE,
     OUT_TYRE_OPERATING_SCALE,
+    OUT_TYRE_CHANGE,
     OUT_TYRE_STIFFNESS,
 ) = OUTPUTS.offsets
 
@@ -293,6 +295,7 @@ def lateral_stage(
     out[OUT_TYRE_LEARNING] = bank_out[tb.OUT_LEARNING]
     out[OUT_TYRE_EVIDENCE] = _count_evidence(st, prm, bank_out[tb.OUT_LEARNING] != 0.0)
     out[OUT_TYRE_OPERATING_SCALE] = bank_out[tb.OUT_OPERATING_SCALE]
+    out[OUT_TYRE_CHANGE] = bank_out[tb.OUT_CHANGE]
     for k in range(4):
         out[OUT_TYRE_STIFFNESS + k] = bank_out[tb.OUT_SCALE] * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]

@@ -142,6 +142,7 @@ PARAMS = Layout(
     tyre_settle_learning=1,  # ... of which this long learning
     tyre_min_evidence=1,  # s of learning cycles (the lateral stage's faded count) the estimate must rest on
     tyre_untested=1,  # s the estimate stays valid after the last cycle that tested it
+    tyre_valid_max_change=1,  # nats: the bank's change statistic above this is an inconsistency, like the NIS's
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
@@ -175,6 +176,7 @@ PARAMS = Layout(
     P_TYRE_SETTLE_LEARNING,
     P_TYRE_MIN_EVIDENCE,
     P_TYRE_UNTESTED,
+    P_TYRE_VALID_MAX_CHANGE,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
     P_PLAUSIBILITY_LAG,
@@ -230,6 +232,7 @@ def build_params(settings, design) -> np.ndarray:
         tyre_settle_learning=est.tyre_bank.settle_learning_time,
         tyre_min_evidence=est.tyre_bank.valid_min_evidence,
         tyre_untested=est.tyre_bank.valid_untested_time,
+        tyre_valid_max_change=est.tyre_bank.valid_max_change,
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
@@ -480,7 +483,12 @@ def supervisor_stage(
                 valid |= V_FY_FRONT | V_FY_REAR
     # tyre scale: valid from the bank's posterior and consistency (module doc)
     t = st[ST_TIME]
-    if lateral[lat.OUT_TYRE_NIS_FAST] > prm[P_TYRE_VALID_MAX_NIS_FAST]:
+    # a sudden change of road: the most likely tyre explains the last 0.1 s badly, or a neighbour explains the last
+    # cycles better (a road changing as the lean comes into the learning range fits the old tyre within its NIS)
+    if (
+        lateral[lat.OUT_TYRE_NIS_FAST] > prm[P_TYRE_VALID_MAX_NIS_FAST]
+        or lateral[lat.OUT_TYRE_CHANGE] > prm[P_TYRE_VALID_MAX_CHANGE]
+    ):
         st[ST_TYRE_ALARM_UNTIL] = t + prm[P_TYRE_HOLD]
     concentrated = lateral[lat.OUT_TYRE_LOG_SD] <= prm[P_TYRE_VALID_LOG_SD]
     # settled means the estimate held, and held while new evidence came in. Held: within its own claimed spread (the
