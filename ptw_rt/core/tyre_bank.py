@@ -247,7 +247,9 @@ def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
-def _change_statistic(st: np.ndarray, prm: np.ndarray, nis_now: np.ndarray, ld_now: np.ndarray, lo: int, hi: int) -> float:
+def _change_statistic(
+    st: np.ndarray, prm: np.ndarray, nis_now: np.ndarray, ld_now: np.ndarray, lo: int, hi: int
+) -> float:
     """A CUSUM of this cycle's log-likelihood ratio of the better neighbour of the window's centre (the last most
     likely tyre) against the centre, less `B_CHANGE_DRIFT`, fading by `B_CHANGE_LEAK`: a sequential test of "the
     tyres the data show now are another hypothesis than the one published". Unlike the NIS, which measures how badly
