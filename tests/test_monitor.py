@@ -69,6 +69,7 @@ class Source:
                 "TireScaleLogSd": 0.02,
                 "TireModelConsistency": 4.5,
                 "TireLearning": 1,
+                "TireChange": 0.5,
             }
         return {
             "EST_TireStiffness_Valid": 1,

@@ -90,6 +90,7 @@ from ptw_rt.core.layout import (
     E_TORQUE_RESIDUAL,
     E_TORQUE_UIHOSMO,
     E_TORQUE_UIO_SENSORS,
+    E_TYRE_CHANGE,
     E_TYRE_LEARNING,
     E_TYRE_LOG_SD,
     E_TYRE_NIS,
@@ -166,6 +167,7 @@ def publish(
     est[E_TYRE_LOG_SD] = o_lat[lat.OUT_TYRE_LOG_SD]
     est[E_TYRE_NIS] = o_lat[lat.OUT_TYRE_NIS]
     est[E_TYRE_LEARNING] = o_lat[lat.OUT_TYRE_LEARNING]
+    est[E_TYRE_CHANGE] = o_lat[lat.OUT_TYRE_CHANGE]
     est[E_C_ALPHA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 0]  # seed 001's adaptive observer (diagnostic)
     est[E_C_GAMMA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 1]
     est[E_C_ALPHA_REAR_SEED001] = o_stf[stf.OUT_STIFFNESS + 2]

@@ -126,7 +126,8 @@ E_TORQUE_UIO_SENSORS = 43  # N m, the UIHOSMO on the sensors' rider torque (issu
 E_TORQUE_RESIDUAL = 44  # N m, windowed RMS of published - E_TORQUE_UIO_SENSORS (the plausibility monitor's)
 E_PLAUSIBILITY = 45  # that residual over its speed-dependent threshold: > 1 raises REASON_IMPLAUSIBLE
 E_STEER_RESIDUAL = 46  # rad, running mean of steer - kinematic steer riding nearly straight (> 0.5 deg: implausible)
-ESTIMATES_SIZE = 47
+E_TYRE_CHANGE = 47  # nats, the tyre bank's change statistic (a neighbouring tyre explains the last cycles better)
+ESTIMATES_SIZE = 48
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -188,6 +189,7 @@ ESTIMATE_NAMES = (
     "torque_residual",
     "plausibility",
     "steer_residual",
+    "tyre_change",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

@@ -31,6 +31,7 @@ from ptw_rt.core.layout import (
     E_STEER_RESIDUAL,
     E_TORQUE_RESIDUAL,
     E_TORQUE_UIO_SENSORS,
+    E_TYRE_CHANGE,
     E_TYRE_LEARNING,
     E_TYRE_LOG_SD,
     E_TYRE_NIS,
@@ -77,6 +78,7 @@ SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
         ("TireScaleLogSd", E_TYRE_LOG_SD, 0),
         ("TireModelConsistency", E_TYRE_NIS, 0),
         ("TireLearning", E_TYRE_LEARNING, 0),
+        ("TireChange", E_TYRE_CHANGE, 0),
     ),
     # the plausibility monitor (issue #16): diagnostics, valid while the estimator runs
     "EST_Plausibility": (
