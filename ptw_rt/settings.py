@@ -128,7 +128,7 @@ TYRE_BANK_SCHEMA = Section(
         # fits the old tyre within its NIS (docs/estimator.md, "A road that changes where nothing tests the tyres")
         "change_drift": (Number("", gt=0, le=100), 1.0),
         "change_memory": (Number("s", gt=0, le=60), 0.3),
-        "valid_max_change": (Number("", gt=0, le=1e4), 5.0),
+        "valid_max_change": (Number("", gt=0, le=1e4), 4.0),
         "min_learning_speed": (Number("m/s", gt=0, le=100), 8.0),
         # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
         # kinematic steer the slip angles are measured against; learning waits while that could move k by more
