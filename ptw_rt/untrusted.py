@@ -208,10 +208,9 @@ _CONTROL_ESCAPES = {c: f"\\x{c:02x}" for c in (*range(32), 127)}
 
 
 def error_text(exc: object, limit: int = 80) -> str:
-    """An exception's message (its type's name when it has none) as a message fragment: its first ``limit``
-    characters, ASCII-escaped (a parser's error quotes the untrusted bytes it choked on)."""
-    text = str(exc) or type(exc).__name__
-    return ascii(text[:limit])[1:-1]
+    """An exception's message (its type's name when it has none) as a message fragment (``short_text``: a
+    parser's error quotes the untrusted bytes it choked on)."""
+    return short_text(str(exc) or type(exc).__name__, limit)
 
 
 def file_size(fh: IO[bytes]) -> int:

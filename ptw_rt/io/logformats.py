@@ -368,16 +368,17 @@ class _MessageReader(TimeRule):
     def _skip(self, kind: str) -> None:
         self.skipped[kind] = self.skipped.get(kind, 0) + 1
 
+    def _skipped(self, error: bool, remote: bool, fd: bool) -> bool:
+        """Whether a record is an error, a remote or a CAN FD frame, none of them an input of ours (counted, in
+        that order of precedence, whatever the format)."""
+        kind = "error" if error else "remote" if remote else "fd" if fd else None
+        if kind is not None:
+            self._skip(kind)
+        return kind is not None
+
     def _message(self, msg: Any, record: int) -> LogFrame | Problem | None:
         """A python-can Message as a frame; None for a remote, error or CAN FD frame (counted)."""
-        if msg.is_error_frame:
-            self._skip("error")
-            return None
-        if msg.is_remote_frame:
-            self._skip("remote")
-            return None
-        if msg.is_fd or len(msg.data) > 8:
-            self._skip("fd")
+        if self._skipped(msg.is_error_frame, msg.is_remote_frame, msg.is_fd or len(msg.data) > 8):
             return None
         ts = msg.timestamp
         if not isinstance(ts, float):
@@ -600,11 +601,7 @@ class _CandumpTextReader(_LineReader):
             self._clock += ts
             ts = self._clock
         size = int(length)
-        if rest.startswith("remote request"):
-            self._skip("remote")
-            return None
-        if size > 8:
-            self._skip("fd")
+        if self._skipped(False, rest.startswith("remote request"), size > 8):
             return None
         try:
             payload = bytes.fromhex(rest)
@@ -637,15 +634,8 @@ class _PycanTextReader(_LineReader):
         except ValueError as exc:
             return Problem(n, error_text(exc), text, "bad_timestamp")
         marks = flags.split()
-        if "E" in marks:
-            self._skip("error")
-            return None
-        if "R" in marks:
-            self._skip("remote")
-            return None
-        payload = bytes.fromhex(data)
-        if "F" in marks or len(payload) > 8:
-            self._skip("fd")
+        payload = bytes.fromhex(data)  # hex pairs (the line's pattern)
+        if self._skipped("E" in marks, "R" in marks, "F" in marks or len(payload) > 8):
             return None
         if len(payload) != int(length):
             return Problem(n, f"DL {length} with {len(payload)} data bytes", text, "malformed")
@@ -681,15 +671,9 @@ class _CsvReader(_LineReader):
             int(dlc)
         except (ValueError, binascii.Error) as exc:
             return Problem(n, error_text(exc), text, "malformed")
-        if error == "1":
-            self._skip("error")
-        elif remote == "1":
-            self._skip("remote")
-        elif len(payload) > 8:
-            self._skip("fd")
-        else:
-            return _frame(ts, 0, frame_id, payload, n, extended == "1")
-        return None
+        if self._skipped(error == "1", remote == "1", len(payload) > 8):
+            return None
+        return _frame(ts, 0, frame_id, payload, n, extended == "1")
 
 
 class _BlfReader(_MessageReader):
@@ -946,13 +930,7 @@ class _SqliteReader(_RecordReader):
                     yield Problem(n, item, "", "malformed")
                     continue
                 ts, frame_id, extended, remote, error, data = item
-                if error:
-                    self._skip("error")
-                elif remote:
-                    self._skip("remote")
-                elif len(data) > 8:
-                    self._skip("fd")
-                else:
+                if not self._skipped(error, remote, len(data) > 8):
                     yield _frame(ts, 0, frame_id, data, n, extended)
         except sqlite_log.SqliteLogError as exc:
             raise LogFormatError(f"{self.path}: {exc}") from None
