@@ -84,6 +84,10 @@ PLAUSIBILITY_SCHEMA = Section(
         # s the rider torque stays not VALID after that NIS was last above its limit (a slide's NIS dips under it
         # for a cycle between two peaks)
         "model_hold": (Number("s", ge=0, le=10), 0.2),
+        # the UIHOSMO channel's own roll (ptw_rt/core/channel_kinematics.py): a complementary filter, the
+        # roll-rate gyro above this crossover, the accelerometer's gravity direction below it; a roll-gyro bias b
+        # moves it by b / crossover at most (docs/estimator.md, "The channel's own roll")
+        "roll_crossover": (Number("rad/s", gt=0.01, le=100), 1.0),
     },
 )
 
@@ -417,6 +421,7 @@ class PlausibilityTuning:
     lag: float
     model_max_nis_fast: float
     model_hold: float
+    roll_crossover: float
 
     def __post_init__(self) -> None:
         starts = self.band_start_kmh

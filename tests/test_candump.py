@@ -38,7 +38,13 @@ def _estimator_frames(codec: FrameCodec, n: int = 5) -> list[tuple[float, int, b
                 t + 0.001,
                 *codec.encode(
                     "EST_Roll",
-                    {"RollAngle": -0.2 + 0.01 * i, "RollRateEst": 0.05, "EST_Roll_Valid": 1, "RollAngle_Valid": 1},
+                    {
+                        "RollAngle": -0.2 + 0.01 * i,
+                        "RollRateEst": 0.05,
+                        "RollUIHOSMO": 0.0,
+                        "EST_Roll_Valid": 1,
+                        "RollAngle_Valid": 1,
+                    },
                     counter=i % 15,
                 ),
             )

@@ -60,6 +60,7 @@ CONTRACT_OUTPUTS: dict[str, dict] = {
         "signals": {
             "RollAngle": ("rad", 1e-4, -1.5, 1.5),
             "RollRateEst": ("rad/s", 1e-4, -3.0, 3.0),
+            "RollUIHOSMO": ("rad", 1e-4, -1.5, 1.5),  # added in v1.5 (issue #16: the UIHOSMO channel's own roll)
         },
     },
     "EST_RiderTorque": {
@@ -401,6 +402,7 @@ def test_dbc_output_without_counter_rejected(tmp_path: Path) -> None:
 
 def test_dbc_e2e_crc_not_in_byte0_rejected(tmp_path: Path) -> None:
     text = DEFAULT_DBC.read_text().replace(" SG_ EST_Roll_CRC : 0|8@1+", " SG_ EST_Roll_CRC : 48|8@1+")
+    text = text.replace(" SG_ RollUIHOSMO : 48|16@1-", " SG_ RollUIHOSMO : 56|8@1-")  # the bits the CRC moves to
     p = tmp_path / "badcrc.dbc"
     p.write_text(text)
     with pytest.raises(DbcError, match="byte 0"):
@@ -492,11 +494,11 @@ def test_round_trip_property(codec: FrameCodec, msg: str, data) -> None:
 
 
 def test_encode_clips_to_range(codec: FrameCodec) -> None:
-    _, data = codec.encode("EST_Roll", {"RollAngle": 7.0, "RollRateEst": -1e9}, counter=1)
+    _, data = codec.encode("EST_Roll", {"RollAngle": 7.0, "RollRateEst": -1e9, "RollUIHOSMO": 0.0}, counter=1)
     _, dec = codec.decode(codec.frame_id("EST_Roll"), data)
     assert dec["RollAngle"] == pytest.approx(1.5)
     assert dec["RollRateEst"] == pytest.approx(-3.0)
-    _, data = codec.encode("EST_Roll", {"RollAngle": math.inf, "RollRateEst": -math.inf}, counter=1)
+    _, data = codec.encode("EST_Roll", {"RollAngle": math.inf, "RollRateEst": -math.inf, "RollUIHOSMO": 0.0}, counter=1)
     _, dec = codec.decode(codec.frame_id("EST_Roll"), data)
     assert (dec["RollAngle"], dec["RollRateEst"]) == (pytest.approx(1.5), pytest.approx(-3.0))
 
@@ -510,22 +512,24 @@ def test_encode_missing_mandatory_signal_raises(codec: FrameCodec) -> None:
 
 def test_encode_unknown_signal_raises(codec: FrameCodec) -> None:
     with pytest.raises(FrameEncodeError, match="RollAngle_valid"):
-        codec.encode("EST_Roll", {"RollAngle": 0.1, "RollRateEst": 0.0, "RollAngle_valid": 1}, counter=0)
+        codec.encode(
+            "EST_Roll", {"RollAngle": 0.1, "RollRateEst": 0.0, "RollUIHOSMO": 0.0, "RollAngle_valid": 1}, counter=0
+        )
 
 
 def test_encode_nan_raises(codec: FrameCodec) -> None:
     with pytest.raises(FrameEncodeError, match="NaN"):
-        codec.encode("EST_Roll", {"RollAngle": math.nan, "RollRateEst": 0.0}, counter=0)
+        codec.encode("EST_Roll", {"RollAngle": math.nan, "RollRateEst": 0.0, "RollUIHOSMO": 0.0}, counter=0)
 
 
 @pytest.mark.parametrize("bad", [None, "fast", [1.0]])
 def test_encode_non_number_raises(codec: FrameCodec, bad) -> None:
     with pytest.raises(FrameEncodeError, match="RollAngle"):
-        codec.encode("EST_Roll", {"RollAngle": bad, "RollRateEst": 0.0}, counter=0)
+        codec.encode("EST_Roll", {"RollAngle": bad, "RollRateEst": 0.0, "RollUIHOSMO": 0.0}, counter=0)
 
 
 def test_encode_defaults_counter_crc_valid(codec: FrameCodec) -> None:
-    fid, data = codec.encode("EST_Roll", {"RollAngle": 0.2, "RollRateEst": 0.0})
+    fid, data = codec.encode("EST_Roll", {"RollAngle": 0.2, "RollRateEst": 0.0, "RollUIHOSMO": 0.0})
     _, dec = codec.decode_checked(fid, data)
     assert dec["EST_Roll_Counter"] == 0
     assert dec["EST_Roll_Valid"] == 0  # a missing validity bit means invalid
@@ -535,7 +539,7 @@ def test_encode_defaults_counter_crc_valid(codec: FrameCodec) -> None:
 
 
 def test_encode_counter_argument_and_range(codec: FrameCodec) -> None:
-    vals = {"RollAngle": 0.0, "RollRateEst": 0.0, "EST_Roll_Valid": 1}
+    vals = {"RollAngle": 0.0, "RollRateEst": 0.0, "RollUIHOSMO": 0.0, "EST_Roll_Valid": 1}
     for c in range(15):
         fid, data = codec.encode("EST_Roll", vals, counter=c)
         assert data[1] & 0x0F == c

@@ -110,6 +110,7 @@ def _cell(
     err=(5, 12),
     share=0.8,
     uio_pct=18.0,
+    uio_roll=0.6,
     alarms=0,
     roll_valid_err=0.4,
 ):
@@ -123,7 +124,14 @@ def _cell(
         "scenario": scenario,
         "variant": variant,
         "metrics": {
-            "roll_rmse_deg": {"ours": ours, "peer": peer, "uihosmo": 9.0, "kinematic": 3.0, "complementary": 0.9},
+            "roll_rmse_deg": {
+                "ours": ours,
+                "peer": peer,
+                "uihosmo_sensors": uio_roll,
+                "uihosmo": 9.0,
+                "kinematic": 3.0,
+                "complementary": 0.9,
+            },
             "roll_ratio_to_peer": ours / peer,
             "roll_valid": {"max_err_deg": roll_valid_err, "tolerance_deg": 3.0, "share": 0.9},
             "torque": {
@@ -166,6 +174,9 @@ def test_targets_met_and_each_miss_flagged():
     # the UIHOSMO on the sensors beyond 25 % of the peak (a target of the nominal cells only)
     res = mx.check_targets(copy.deepcopy(good) + [_cell("urban", uio_pct=30.0)])
     assert res["overall"]["uihosmo_torque_le_25pct_peak"]["missed"] == ["urban / nominal"]
+    # ... and its own roll beyond 1.5 deg (likewise)
+    res = mx.check_targets(copy.deepcopy(good) + [_cell("urban", uio_roll=1.6)])
+    assert res["overall"]["uihosmo_roll_le_1.5deg"]["missed"] == ["urban / nominal"]
     # dlc_100 nominal roll above 0.45 deg, the matrix mean ratio above 0.7
     res = mx.check_targets([_cell("dlc_100", ours=0.5, peer=0.6)])
     assert res["overall"]["dlc_100_roll_le_0.45deg"]["met"] is False

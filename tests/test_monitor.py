@@ -34,7 +34,14 @@ class Source:
     def signals(self, name: str, moving: bool) -> dict[str, float]:
         x = 0.1 * math.sin(0.05 * self.k) if moving else 0.1
         if name == "EST_Roll":
-            return {"EST_Roll_Valid": 1, "RollAngle_Valid": 1, "RollRateEst_Valid": 1, "RollAngle": x, "RollRateEst": x}
+            return {
+                "EST_Roll_Valid": 1,
+                "RollAngle_Valid": 1,
+                "RollRateEst_Valid": 1,
+                "RollAngle": x,
+                "RollRateEst": x,
+                "RollUIHOSMO": x,
+            }
         if name == "EST_RiderTorque":
             return {
                 "EST_RiderTorque_Valid": 1,

@@ -16,6 +16,7 @@ from ptw_rt.core.layout import (
     E_MODE,
     E_REASONS,
     E_ROLL,
+    E_ROLL_UIO_SENSORS,
     E_VALID,
     MODE_CONVERGING,
     MODE_DEGRADED,
@@ -166,11 +167,19 @@ def test_byte_identical_to_cantools(codec):
     # sanity: plus one explicit codec.encode
     fid, data = codec.encode(
         "EST_Roll",
-        {"RollAngle": 0.12345, "RollRateEst": -0.5, "RollAngle_Valid": 1, "RollRateEst_Valid": 1, "EST_Roll_Valid": 1},
+        {
+            "RollAngle": 0.12345,
+            "RollRateEst": -0.5,
+            "RollUIHOSMO": 0.1,
+            "RollAngle_Valid": 1,
+            "RollRateEst_Valid": 1,
+            "EST_Roll_Valid": 1,
+        },
         counter=7,
     )
     enc2 = OutputEncoder(codec)
     enc2.counters["EST_Roll"] = 7
     e = _estimates(valid=V_ROLL | V_ROLL_RATE | V_FY_FRONT | V_FY_REAR | V_CAMBER, values={E_ROLL: 0.12345})
     e[1] = -0.5
+    e[E_ROLL_UIO_SENSORS] = 0.1
     assert enc2.frames(e, 1)[0] == (fid, data)

@@ -20,6 +20,8 @@ import math
 import numpy as np
 from numba import njit
 
+from ptw_rt.core import attitude as att
+from ptw_rt.core import channel_kinematics as ck
 from ptw_rt.core import conditioning as cnd
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
@@ -34,8 +36,9 @@ STATE = Layout(
     sta=STA_STATE_SIZE,  # the super-twisting observer's state
     uh_tmp=24,  # the UIHOSMO's scratch
     us=cus.STATE_SIZE,  # the UIHOSMO on the sensors (ptw_rt.core.uio_sensors layout)
+    ch=ck.STATE_SIZE,  # its own kinematics: roll, rates, a_y (ptw_rt.core.channel_kinematics layout)
 )
-ST_UH, ST_STA, ST_UH_TMP, ST_US = STATE.offsets
+ST_UH, ST_STA, ST_UH_TMP, ST_US, ST_CH = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -49,6 +52,7 @@ PARAMS = Layout(
     sta_lc_w=1,  # bound on |d a_y / dt| [m/s^3]
     geom=4,  # [M, I_z, a_f, a_r] of the CoM-referred lateral/yaw sub-model
     us=cus.PARAM_SIZE,  # the UIHOSMO on the sensors' parameters (ptw_rt.core.uio_sensors P_*)
+    ch=ck.PARAM_SIZE,  # its own kinematics' parameters (ptw_rt.core.channel_kinematics P_*)
 )
 (
     P_DT,
@@ -61,6 +65,7 @@ PARAMS = Layout(
     P_STA_LC_W,
     P_GEOM,
     P_US,
+    P_CH,
 ) = PARAMS.offsets
 
 OUTPUTS = Layout(
@@ -72,8 +77,9 @@ OUTPUTS = Layout(
     fy_rear=1,
     reset=1,  # 1: the UIHOSMO diverged this cycle and was reset
     us=cus.OUT_SIZE,  # the UIHOSMO on the sensors (ptw_rt.core.uio_sensors OUT layout): torque, valid
+    ch=ck.OUT_SIZE,  # its own kinematics (ptw_rt.core.channel_kinematics OUT layout): roll, rates, a_y, valid
 )
-OUT_UH, OUT_ROLL, OUT_TORQUE, OUT_FY_FRONT, OUT_FY_REAR, OUT_RESET, OUT_US = OUTPUTS.offsets
+OUT_UH, OUT_ROLL, OUT_TORQUE, OUT_FY_FRONT, OUT_FY_REAR, OUT_RESET, OUT_US, OUT_CH = OUTPUTS.offsets
 
 # design tables, in the order `diagnostics_stage` reads them from its first table row
 TABLES = (
@@ -143,6 +149,7 @@ def build_params(settings, design) -> np.ndarray:
         sta_lc_w=est.force_observer_lateral_bound,
         geom=lateral_yaw_constants(settings.vehicle),
         us=cus.stage_params(design, steer_quantum=settings.sensors.steer_count_rad),
+        ch=ck.build_params(settings, design),
     )
 
 
@@ -156,6 +163,7 @@ def diagnostics_stage(
     t0: int,
     inputs: np.ndarray,
     speed: np.ndarray,
+    attitude: np.ndarray,
     cond: np.ndarray,
 ) -> None:
     """One cycle. ``tables``/``tindex``: a packed buffer holding TABLES in order from row ``t0``."""
@@ -242,12 +250,35 @@ def diagnostics_stage(
     out[OUT_TORQUE] = tau_uio
     out[OUT_RESET] = 1.0 if reset else 0.0
 
-    # the UIHOSMO on the sensors (issue #16): rider torque from steer'' with the attitude filter's roll as a
-    # measured input, a diverse check of the published torque (the supervisor's plausibility monitor)
+    # the UIHOSMO on the sensors (issue #16): rider torque from steer'' with the roll as a measured input, a diverse
+    # check of the published torque (the supervisor's plausibility monitor). Its roll, rates and a_y are its own
+    # (core.channel_kinematics, from the raw IMU): fed the attitude filter's, it only repeated the published roll
+    ch_state = st[ST_CH : ST_CH + ck.STATE_SIZE]
+    ch_out = out[OUT_CH : OUT_CH + ck.OUT_SIZE]
+    # only on this cycle's own readings: a held gyro value integrated is a roll invented, a held accelerometer
+    # value a gravity direction that may be stale
+    if inputs[inp.OUT_IMU_OK] != 0.0 and inputs[inp.OUT_RATES_OK] != 0.0:
+        raw = inputs[inp.OUT_RAW : inp.OUT_RAW + inp.N_RAW]
+        # the pitch and yaw gyros' biases are the attitude filter's (calibration constants; a yaw-rate bias times
+        # the speed is a lateral acceleration: 0.01 rad/s at 100 km/h is 1.6 deg of roll). The roll path (roll-rate
+        # gyro, accelerometer) takes none of its estimates: that is what keeps this roll the channel's own
+        b_q = attitude[att.OUT_BQ] if attitude[att.OUT_OK] != 0.0 else 0.0
+        b_r = attitude[att.OUT_BR] if attitude[att.OUT_OK] != 0.0 else 0.0
+        ck.channel_kinematics_step(
+            ch_state,
+            prm[P_CH : P_CH + ck.PARAM_SIZE],
+            ch_out,
+            raw[inp.RAW_P],
+            raw[inp.RAW_Q] - b_q,
+            raw[inp.RAW_R] - b_r,
+            raw[inp.RAW_AY],
+            raw[inp.RAW_AZ],
+            u,
+            inputs[inp.OUT_ACCEL_OK] != 0.0 and inputs[inp.OUT_ACCEL_TRUSTED] != 0.0 and speed[spd.OUT_KNOWN] != 0.0,
+        )
     us_state = st[ST_US : ST_US + cus.STATE_SIZE]
     us_out = out[OUT_US : OUT_US + cus.OUT_SIZE]
-    if run:
-        a_y = cond[cnd.OUT_A_Y] if inputs[inp.OUT_ACCEL_OK] != 0.0 else math.nan  # nan: held, not valid
+    if run and ch_out[ck.OUT_VALID] != 0.0:
         cus.uio_sensors_step(
             us_state,
             us_out,
@@ -265,10 +296,10 @@ def diagnostics_stage(
             v3(tables, tindex, t0 + T_US_RAMP21),
             v2(tables, tindex, t0 + T_US_LAM),
             delta,
-            r_ground,
-            cond[cnd.OUT_ROLL_RATE],
-            a_y,
-            cond[cnd.OUT_DEROLL],
+            ch_out[ck.OUT_YAW_RATE],
+            ch_out[ck.OUT_ROLL_RATE],
+            ch_out[ck.OUT_A_Y],  # nan while the accelerometer is not sound: held, not valid
+            ch_out[ck.OUT_ROLL],
             u,
         )
     else:

@@ -40,6 +40,7 @@ import numpy as np
 from numba import njit
 
 from ptw_rt.core import attitude as att
+from ptw_rt.core import channel_kinematics as ck
 from ptw_rt.core import conditioning as cnd
 from ptw_rt.core import diagnostics as dia
 from ptw_rt.core import inputs as inp
@@ -83,6 +84,7 @@ from ptw_rt.core.layout import (
     E_ROLL_RATE_MEASURED,
     E_ROLL_SD,
     E_ROLL_UIHOSMO,
+    E_ROLL_UIO_SENSORS,
     E_SPEED,
     E_STEER,
     E_STEER_RATE,
@@ -197,6 +199,8 @@ def publish(
     est[E_Y_A] = o_stf[stf.OUT_Y_A]
     us = o_dia[dia.OUT_US : dia.OUT_US + cus.OUT_SIZE]
     est[E_TORQUE_UIO_SENSORS] = us[cus.OUT_TORQUE] if us[cus.OUT_VALID] != 0.0 else 0.0
+    ch = o_dia[dia.OUT_CH : dia.OUT_CH + ck.OUT_SIZE]
+    est[E_ROLL_UIO_SENSORS] = ch[ck.OUT_ROLL] if ch[ck.OUT_VALID] != 0.0 else 0.0
     est[E_TORQUE_RESIDUAL] = o_sup[sup.OUT_TORQUE_RESIDUAL]
     est[E_PLAUSIBILITY] = o_sup[sup.OUT_PLAUSIBILITY]
     est[E_STEER_RESIDUAL] = o_sup[sup.OUT_STEER_RESIDUAL]
@@ -231,7 +235,16 @@ def packed_step(
     att.attitude_stage(_state(s, si, ATTITUDE), v1(t, ti, ATTITUDE), o_att, o_in, o_spd)
     cnd.conditioning_stage(sample, _state(s, si, CONDITIONING), v1(t, ti, CONDITIONING), o_cnd, o_in, o_spd, o_att)
     dia.diagnostics_stage(
-        _state(s, si, DIAGNOSTICS), v1(t, ti, DIAGNOSTICS), o_dia, t, ti, TABLE_ROW0[DIAGNOSTICS], o_in, o_spd, o_cnd
+        _state(s, si, DIAGNOSTICS),
+        v1(t, ti, DIAGNOSTICS),
+        o_dia,
+        t,
+        ti,
+        TABLE_ROW0[DIAGNOSTICS],
+        o_in,
+        o_spd,
+        o_att,
+        o_cnd,
     )
     lat.lateral_stage(
         _state(s, si, LATERAL), v1(t, ti, LATERAL), o_lat, t, ti, TABLE_ROW0[LATERAL], o_in, o_spd, o_att, o_cnd

@@ -127,7 +127,8 @@ E_TORQUE_RESIDUAL = 44  # N m, windowed RMS of published - E_TORQUE_UIO_SENSORS 
 E_PLAUSIBILITY = 45  # that residual over its speed-dependent threshold: > 1 raises REASON_IMPLAUSIBLE
 E_STEER_RESIDUAL = 46  # rad, running mean of steer - kinematic steer riding nearly straight (> 0.5 deg: implausible)
 E_TYRE_CHANGE = 47  # nats, the tyre bank's change statistic (a neighbouring tyre explains the last cycles better)
-ESTIMATES_SIZE = 48
+E_ROLL_UIO_SENSORS = 48  # rad, the UIHOSMO channel's own roll (raw IMU and speed, no attitude filter; 0 until started)
+ESTIMATES_SIZE = 49
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -190,6 +191,7 @@ ESTIMATE_NAMES = (
     "plausibility",
     "steer_residual",
     "tyre_change",
+    "roll_uio_sensors",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

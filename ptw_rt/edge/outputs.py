@@ -26,6 +26,7 @@ from ptw_rt.core.layout import (
     E_RIDER_TORQUE,
     E_ROLL,
     E_ROLL_RATE,
+    E_ROLL_UIO_SENSORS,
     E_STEER,
     E_STEER_RATE,
     E_STEER_RESIDUAL,
@@ -55,7 +56,12 @@ __all__ = ["FAST_MESSAGES", "SLOW_MESSAGES", "OutputEncoder", "SIGNAL_MAP"]
 
 # message -> ((signal, Estimates index, V_* bit of its <signal>_Valid or 0), ...)
 SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
-    "EST_Roll": (("RollAngle", E_ROLL, V_ROLL), ("RollRateEst", E_ROLL_RATE, V_ROLL_RATE)),
+    "EST_Roll": (
+        ("RollAngle", E_ROLL, V_ROLL),
+        ("RollRateEst", E_ROLL_RATE, V_ROLL_RATE),
+        # the UIHOSMO channel's own roll (issue #16): a diagnostic beside the published one, no valid bit
+        ("RollUIHOSMO", E_ROLL_UIO_SENSORS, 0),
+    ),
     "EST_RiderTorque": (
         ("RiderTorque", E_RIDER_TORQUE, V_RIDER_TORQUE),
         ("SteerAngleEst", E_STEER, V_STEER),

@@ -213,6 +213,9 @@ def evaluate_ride(
         "fy_rear_rmse_n": _round(_rms(E[m, L.E_FY_REAR] - truth["fy_rear"][m])),
         "roll_rmse_pct": _round(100.0 * _rms(roll_err) / _rms(truth["roll"][m]), 2) if m.any() else None,
         "roll_uihosmo_rmse_deg": _round(deg(_rms(E[m, L.E_ROLL_UIHOSMO] - truth["roll"][m]))) if m.any() else None,
+        "roll_uio_sensors_rmse_deg": (
+            _round(deg(_rms(E[m, L.E_ROLL_UIO_SENSORS] - truth["roll"][m]))) if m.any() else None
+        ),
         "stiffness_err_pct": {},
         "valid_share": _round(float(np.mean(E[t >= SETTLE_S, L.E_MODE] == L.MODE_VALID)), 3),
     }
@@ -353,7 +356,7 @@ def _targets(result: dict) -> dict:
 
 def _table(results: list[dict]) -> str:
     head = (
-        f"{'scenario':<16}{'roll':>7}{'peer':>7}{'uio':>7}{'kin':>7}{'comp':>7}{'tau':>8}{'tau%':>7}"
+        f"{'scenario':<16}{'roll':>7}{'peer':>7}{'uioS':>7}{'uio':>7}{'kin':>7}{'comp':>7}{'tau':>8}{'tau%':>7}"
         f"{'vy':>7}{'Fyf':>7}{'Fyr':>7}{'Caf%':>8}{'Car%':>8}{'Cgf%':>8}{'Cgr%':>8}  targets"
     )
     lines = [head, "-" * len(head)]
@@ -367,15 +370,17 @@ def _table(results: list[dict]) -> str:
         tgt = " ".join(f"{k}={'ok' if v else 'MISS'}" for k, v in met.items())
         lines.append(
             f"{r['scenario']:<16}{f(m['roll_rmse_deg'])}{f(b.get('ahrs_peer_roll_rmse_deg'))}"
-            f"{f(m['roll_uihosmo_rmse_deg'])}"
+            f"{f(m.get('roll_uio_sensors_rmse_deg'))}{f(m['roll_uihosmo_rmse_deg'])}"
             f"{f(b['kinematic_roll_rmse_deg'])}{f(b['complementary_roll_rmse_deg'])}"
             f"{f(m['torque_rmse_nm'], 8)}{f(m.get('torque_rmse_pct_of_peak'), 7, 0)}{f(m['vy_rmse'])}"
             f"{f(m['fy_front_rmse_n'], 7, 0)}{f(m['fy_rear_rmse_n'], 7, 0)}"
             f"{f(s['front_cornering'], 8, 1)}{f(s['rear_cornering'], 8, 1)}{f(s['front_camber'], 8, 1)}"
             f"{f(s['rear_camber'], 8, 1)}  {tgt}"
         )
-    lines.append("roll/peer/uio/kin/comp: roll RMSE [deg] (ours, Fusion AHRS peer, UIHOSMO alone, kinematic,")
-    lines.append("complementary); tau [N m];")
+    lines.append(
+        "roll/peer/uioS/uio/kin/comp: roll RMSE [deg] (ours, Fusion AHRS peer, the UIHOSMO on the sensors' own"
+    )
+    lines.append("roll, seed 000's case 2 alone, kinematic, complementary); tau [N m];")
     lines.append("vy [m/s]; Fy [N]; C%: stiffness error of the second-half mean [%]")
     for r in results:  # the monitors' alarms where there is something to say (a table of healthy rides stays short)
         a = r.get("alarms")

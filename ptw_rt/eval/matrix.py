@@ -54,6 +54,7 @@ BITS = (("cornering", L.V_CORNERING), ("camber", L.V_CAMBER))
 ROLL_MAX_DEG = 1.0
 ROLL_MEAN_RATIO_TO_PEER = 0.7
 UIHOSMO_MAX_PCT_OF_PEAK = 25.0  # issue #16: the UIHOSMO on the sensors' torque RMSE, % of the ride's peak
+UIHOSMO_MAX_ROLL_DEG = 1.5  # issue #16: its roll RMSE (the channel's own roll, core.channel_kinematics)
 TORQUE_MAX_PCT_OF_PEAK = 15.0
 TORQUE_MAX_RATIO_TO_ZERO = 0.5
 STIFFNESS_VALID_MEAN_PCT = 10.0
@@ -232,6 +233,8 @@ def cell_metrics(evaluation) -> dict:
             "ours": ours,
             "peer": peer,
             "uihosmo": roll_rmse(E[:, L.E_ROLL_UIHOSMO]),
+            # the UIHOSMO on the sensors' channel: its own roll (issue #16), not the published one
+            "uihosmo_sensors": roll_rmse(E[:, L.E_ROLL_UIO_SENSORS]),
             "kinematic": roll_rmse(b.get("kinematic_roll")),
             "complementary": roll_rmse(b.get("complementary_roll")),
         },
@@ -323,6 +326,7 @@ def cell_targets(cell: dict) -> dict[str, bool | None]:
     if cell["scenario"] == "dlc_100" and cell["variant"] == "nominal":
         out["dlc_100_roll_le_0.45deg"] = _ok(r["ours"], DLC100_ROLL_MAX_DEG)
     if cell["variant"] == "nominal":  # issue #16: the UIHOSMO alone, realistic plant, standard sensors
+        out["uihosmo_roll_le_1.5deg"] = _ok(r.get("uihosmo_sensors"), UIHOSMO_MAX_ROLL_DEG)
         out["uihosmo_torque_le_25pct_peak"] = _ok(m["torque"].get("uihosmo_pct_of_peak"), UIHOSMO_MAX_PCT_OF_PEAK)
     # issue #16: the plausibility monitor never fires on a healthy ride (nor the attitude monitor)
     alarms = m.get("alarm_cycles", {})
@@ -494,7 +498,8 @@ def _f(v, w: int = 7, nd: int = 2) -> str:
 def cell_table(cells: Sequence[dict]) -> str:
     """One line per cell: roll (ours/peer/ratio, UIHOSMO, kin, comp), torque, stiffness valid, targets."""
     head = (
-        f"{'scenario':<16}{'variant':<12}{'roll':>6}{'peer':>6}{'r/p':>6}{'rV':>6}{'uio':>7}{'kin':>6}{'comp':>6}"
+        f"{'scenario':<16}{'variant':<12}{'roll':>6}{'peer':>6}{'r/p':>6}{'rV':>6}{'uioS':>6}{'uio':>7}{'kin':>6}"
+        f"{'comp':>6}"
         f"{'tau%pk':>7}{'tau/0':>6}{'tV':>6}{'uio%pk':>7}"
         f"  {'stiffness valid: mean|max|err| % (share 2nd half) Caf Cgf Car Cgr':<74}"
         "  missed"
@@ -516,7 +521,7 @@ def cell_table(cells: Sequence[dict]) -> str:
         lines.append(
             f"{c['scenario']:<16}{c['variant']:<12}{_f(r['ours'], 6)}{_f(r['peer'], 6)}"
             f"{_f(m['roll_ratio_to_peer'], 6)}{_f((m.get('roll_valid') or {}).get('max_err_deg'), 6)}"
-            f"{_f(r['uihosmo'], 7, 1)}{_f(r['kinematic'], 6)}"
+            f"{_f(r.get('uihosmo_sensors'), 6)}{_f(r['uihosmo'], 7, 1)}{_f(r['kinematic'], 6)}"
             f"{_f(r['complementary'], 6)}{_f(tq['pct_of_peak'], 7, 1)}{_f(tq['ratio_to_zero'], 6)}"
             f"{_f((m.get('torque_valid') or {}).get('max_mean_err_nm'), 6, 1)}"
             f"{_f(tq.get('uihosmo_pct_of_peak'), 7, 1)}  "
@@ -524,8 +529,8 @@ def cell_table(cells: Sequence[dict]) -> str:
         )
     lines.append(
         "roll: RMSE [deg] ours / Fusion AHRS peer / ours:peer; rV: our largest |error| [deg] while EST_Roll_Valid"
-        " (the promise: within roll_tolerance_deg); RMSE of the UIHOSMO diagnostic (seed 000 case 2) / kinematic /"
-        " complementary;"
+        " (the promise: within roll_tolerance_deg); uioS: RMSE of the UIHOSMO on the sensors' own roll (issue #16,"
+        " core.channel_kinematics); RMSE of the UIHOSMO diagnostic (seed 000 case 2) / kinematic / complementary;"
     )
     lines.append(
         "tau%pk: rider torque RMSE in % of the ride's peak; tau/0: over the RMSE of an all-zero estimate; tV: largest"

@@ -23,7 +23,8 @@ FIGURES = ("roll", "rider_torque", "steer", "states", "forces", "stiffness", "mo
 METRIC_LABELS = {
     "roll_rmse_deg": ("roll RMSE", "deg"),
     "roll_max_err_deg": ("roll max error", "deg"),
-    "roll_uihosmo_rmse_deg": ("roll RMSE, UIHOSMO alone", "deg"),
+    "roll_uihosmo_rmse_deg": ("roll RMSE, UIHOSMO alone (seed 000 case 2)", "deg"),
+    "roll_uio_sensors_rmse_deg": ("roll RMSE, the UIHOSMO on the sensors' own roll", "deg"),
     "torque_rmse_nm": ("rider torque RMSE", "N m"),
     "torque_peak_nm": ("rider torque peak", "N m"),
     "torque_rmse_pct_of_peak": ("rider torque RMSE / peak", "%"),

@@ -1,11 +1,12 @@
 """Offline figures of the UIHOSMO-on-sensors stage (issue #16) against the old case-2 observer, per scenario.
 
-The stage is not wired into the estimator yet: it is driven here with the signals the estimator's own
-conditioning produced on the ride (`evaluate_ride`: steer from the 10-bit encoder count, ground yaw rate,
-roll rate, lateral acceleration at the centre of mass, speed) and, as the stand-in for the kinematic
-attitude filter's roll, the true roll plus 0.2 deg of white noise. Errors are scored as `ptw-rt evaluate`
-does (after 5 s, above the validity speed). The old case-2 figures are the estimator's own diagnostics
-(E_ROLL_UIHOSMO, E_TORQUE_UIHOSMO) on the same ride.
+The stage is driven here as the step drives it, from the ride's samples: steer from the 10-bit encoder count,
+and the channel's own kinematics (`ptw_rt.core.channel_kinematics`: roll, ground yaw rate, roll rate and the
+centre of mass's lateral acceleration from the raw IMU, the pitch and yaw gyros less the attitude filter's bias
+estimates as in the step) with the estimator's conditioned speed. Offline there
+are no input checks: a frame the step would hold (`sensor_faults`) is taken as it comes. Errors are scored as
+`ptw-rt evaluate` does (after 5 s, above the validity speed). The old case-2 figures are the estimator's own
+diagnostics (E_ROLL_UIHOSMO, E_TORQUE_UIHOSMO) on the same ride.
 
     python -m ptw_rt.eval.uio_sensors [SCENARIO ...]
 """
@@ -17,34 +18,46 @@ import sys
 
 import numpy as np
 
+from ptw_rt.core import channel_kinematics as ck
 from ptw_rt.core import layout as L  # noqa: N812
 from ptw_rt.core import uio_sensors as cus
 from ptw_rt.core.conditioning import steer_angle
 from ptw_rt.eval.evaluate import SETTLE_S, Evaluation, evaluate_ride
 
-ROLL_STANDIN_NOISE_DEG = 0.2
 
-
-def drive_stage(ev: Evaluation, design, settings, roll_noise_deg: float = ROLL_STANDIN_NOISE_DEG, seed: int = 0):
+def drive_stage(ev: Evaluation, design, settings):
     """(N, OUT_SIZE) outputs of the stage over the evaluation's cycles."""
-    rng = np.random.default_rng(seed)
     E, S = ev.estimates, ev.samples
     st, out = cus.new_state(), cus.new_output()
+    ch_st, ch_prm, ch = np.zeros(ck.STATE_SIZE), ck.build_params(settings, design), np.zeros(ck.OUT_SIZE)
     zero, cpr = settings.sensors.steer_zero_count, settings.sensors.steer_counts_per_rev
     prm, tables = cus.stage_params(design, steer_quantum=settings.sensors.steer_count_rad), cus.stage_tables(design)
-    roll = ev.truth["roll"] + math.radians(roll_noise_deg) * rng.standard_normal(len(ev.t))
     R = np.zeros((len(ev.t), cus.OUT_SIZE))
     for k in range(len(ev.t)):
+        ck.channel_kinematics_step(
+            ch_st,
+            ch_prm,
+            ch,
+            S[k, L.S_ROLL_RATE_BODY],
+            S[k, L.S_PITCH_RATE_BODY] - E[k, L.E_PITCH_GYRO_BIAS],  # the step's: the attitude filter's calibration
+            S[k, L.S_YAW_RATE_BODY] - E[k, L.E_YAW_GYRO_BIAS],
+            S[k, L.S_ACCEL_Y],
+            S[k, L.S_ACCEL_Z],
+            E[k, L.E_SPEED],
+            True,
+        )
+        if ch[ck.OUT_VALID] == 0.0:
+            continue
         cus.uio_sensors_step(
             st,
             out,
             prm,
             *tables,
             steer_angle(S[k, L.S_STEER_COUNT], zero, cpr),
-            E[k, L.E_YAW_RATE],
-            E[k, L.E_ROLL_RATE_MEASURED],
-            E[k, L.E_LAT_ACCEL],
-            roll[k],
+            ch[ck.OUT_YAW_RATE],
+            ch[ck.OUT_ROLL_RATE],
+            ch[ck.OUT_A_Y],
+            ch[ck.OUT_ROLL],
             E[k, L.E_SPEED],
         )
         R[k] = out
