@@ -55,18 +55,19 @@ def test_the_uihosmo_on_the_sensors_takes_its_own_roll_not_the_attitude_filters(
     """Issue #16's diversity: upright on the IMU, while the conditioning (the attitude filter's chain) says 0.3 rad
     of roll and 0.2 rad/s of yaw. The channel's roll, rates and a_y come from the raw IMU (core.channel_kinematics),
     so the UIHOSMO's measured roll is the IMU's 0, not the published 0.3. Of the attitude filter it takes the yaw
-    gyro's bias (a calibration: the gyro reads 0.01 rad/s riding straight), never the roll-rate gyro's (0.2 here)."""
+    gyro's and the lateral accelerometer's biases (calibrations: upright and straight they read 0.01 rad/s and
+    0.1 m/s^2), never the roll-rate gyro's (0.2 here)."""
     from ptw_rt.core import channel_kinematics as ck
     from ptw_rt.core import uio_sensors as cus
 
     b = dia.STAGE.alone(settings, design)
     g = settings.vehicle.g
-    raw = np.array([0.0, 0.0, 0.01, 0.0, 0.0, -g, 512.0, 20.0])  # the yaw gyro reads its bias, 0.01 rad/s
+    raw = np.array([0.0, 0.0, 0.01, 0.0, 0.1, -g, 512.0, 20.0])  # the yaw gyro and accelerometer read their biases
     flags = {"accel_ok": 1.0, "accel_trusted": 1.0, "core_ok": 1.0, "imu_ok": 1.0, "rates_ok": 1.0}
     inputs = inp.OUTPUTS.vector({**flags, "raw": raw}, strict=False)
     speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
     # the attitude filter: its yaw-gyro bias is taken (a calibration), its roll-rate bias is not
-    attitude = att.OUTPUTS.vector({"ok": 1.0, "roll": 0.3, "bp": 0.2, "br": 0.01}, strict=False)
+    attitude = att.OUTPUTS.vector({"ok": 1.0, "roll": 0.3, "bp": 0.2, "br": 0.01, "bay": 0.1}, strict=False)
     cond = cnd.OUTPUTS.vector(
         {"run": 1.0, "deroll": 0.3, "roll": 0.3, "roll_last": 0.3, "yaw_rate": 0.2, "roll_rate": 0.1, "a_y": 4.0},
         strict=False,

@@ -112,7 +112,7 @@ def test_output_sets_given_by_hand_are_checked_and_analysed_once():
 
 @pytest.mark.slow
 def test_within_target_on_the_nonlinear_plant(settings, design):
-    """dlc_100 on the realistic plant with the contract's sensors, the roll the channel's own (0.99 deg here)."""
+    """dlc_100 on the realistic plant with the contract's sensors, the roll the channel's own (0.45 deg here)."""
     from ptw_rt.eval.evaluate import evaluate_ride
     from ptw_rt.eval.uio_sensors import drive_stage, score
     from ptw_rt.sim.ride import simulate

@@ -3,8 +3,9 @@ lateral acceleration from the raw IMU and the speed, without the attitude filter
 
 Why a second roll: the UIHOSMO on the sensors takes the roll as a measured input. Fed the attitude filter's roll
 (and rates and a_y turned into the road plane with it) the channel only repeated the published roll, faults
-included. This roll shares the sensors and nothing else: no learned gyro or accelerometer bias, no sideslip
-state, a fixed crossover. What that buys and costs is in docs/estimator.md ("The channel's own roll").
+included. This roll has no bias or sideslip state and a fixed crossover; the caller (the diagnostics stage) removes
+the attitude filter's calibrations of the pitch and yaw gyros and the lateral accelerometer, never its roll or the
+roll-rate gyro's bias. What that buys and costs is in docs/estimator.md ("The channel's own roll").
 
 A complementary filter with a fixed crossover w_c: above w_c the roll-rate gyro integrated, below it the
 roll at which the accelerometer sees gravity once the motion is removed. With h the IMU's height above the

@@ -259,11 +259,15 @@ def diagnostics_stage(
     # value a gravity direction that may be stale
     if inputs[inp.OUT_IMU_OK] != 0.0 and inputs[inp.OUT_RATES_OK] != 0.0:
         raw = inputs[inp.OUT_RAW : inp.OUT_RAW + inp.N_RAW]
-        # the pitch and yaw gyros' biases are the attitude filter's (calibration constants; a yaw-rate bias times
-        # the speed is a lateral acceleration: 0.01 rad/s at 100 km/h is 1.6 deg of roll). The roll path (roll-rate
-        # gyro, accelerometer) takes none of its estimates: that is what keeps this roll the channel's own
-        b_q = attitude[att.OUT_BQ] if attitude[att.OUT_OK] != 0.0 else 0.0
-        b_r = attitude[att.OUT_BR] if attitude[att.OUT_OK] != 0.0 else 0.0
+        # the pitch and yaw gyros' and the lateral accelerometer's biases are the attitude filter's (calibration
+        # constants: a yaw-rate bias times the speed is a lateral acceleration, 0.01 rad/s at 100 km/h is 1.6 deg of
+        # roll, and 0.1 m/s^2 of accelerometer bias is 0.6 deg). The roll-rate gyro's is not taken, nor the filter's
+        # roll or sideslip: a roll-gyro fault moves this roll by its bias over the crossover, whatever the filter
+        # makes of it
+        att_ok = attitude[att.OUT_OK] != 0.0
+        b_q = attitude[att.OUT_BQ] if att_ok else 0.0
+        b_r = attitude[att.OUT_BR] if att_ok else 0.0
+        b_ay = attitude[att.OUT_BAY] if att_ok else 0.0
         ck.channel_kinematics_step(
             ch_state,
             prm[P_CH : P_CH + ck.PARAM_SIZE],
@@ -271,7 +275,7 @@ def diagnostics_stage(
             raw[inp.RAW_P],
             raw[inp.RAW_Q] - b_q,
             raw[inp.RAW_R] - b_r,
-            raw[inp.RAW_AY],
+            raw[inp.RAW_AY] - b_ay,
             raw[inp.RAW_AZ],
             u,
             inputs[inp.OUT_ACCEL_OK] != 0.0 and inputs[inp.OUT_ACCEL_TRUSTED] != 0.0 and speed[spd.OUT_KNOWN] != 0.0,

@@ -2,8 +2,8 @@
 
 The stage is driven here as the step drives it, from the ride's samples: steer from the 10-bit encoder count,
 and the channel's own kinematics (`ptw_rt.core.channel_kinematics`: roll, ground yaw rate, roll rate and the
-centre of mass's lateral acceleration from the raw IMU, the pitch and yaw gyros less the attitude filter's bias
-estimates as in the step) with the estimator's conditioned speed. Offline there
+centre of mass's lateral acceleration from the raw IMU, the pitch and yaw gyros and the lateral accelerometer less
+the attitude filter's bias estimates as in the step) with the estimator's conditioned speed. Offline there
 are no input checks: a frame the step would hold (`sensor_faults`) is taken as it comes. Errors are scored as
 `ptw-rt evaluate` does (after 5 s, above the validity speed). The old case-2 figures are the estimator's own
 diagnostics (E_ROLL_UIHOSMO, E_TORQUE_UIHOSMO) on the same ride.
@@ -39,9 +39,9 @@ def drive_stage(ev: Evaluation, design, settings):
             ch_prm,
             ch,
             S[k, L.S_ROLL_RATE_BODY],
-            S[k, L.S_PITCH_RATE_BODY] - E[k, L.E_PITCH_GYRO_BIAS],  # the step's: the attitude filter's calibration
+            S[k, L.S_PITCH_RATE_BODY] - E[k, L.E_PITCH_GYRO_BIAS],  # as the step: the attitude filter's calibrations
             S[k, L.S_YAW_RATE_BODY] - E[k, L.E_YAW_GYRO_BIAS],
-            S[k, L.S_ACCEL_Y],
+            S[k, L.S_ACCEL_Y] - E[k, L.E_LAT_ACCEL_BIAS],
             S[k, L.S_ACCEL_Z],
             E[k, L.E_SPEED],
             True,
