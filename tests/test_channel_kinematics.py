@@ -107,3 +107,19 @@ def test_without_the_accelerometer_the_gyro_carries_the_roll_and_a_y_is_not_give
     before = out.copy()
     ck.channel_kinematics_step(st, prm, out, math.nan, 0.0, 0.0, f_y, f_z, 10.0, True)
     assert np.array_equal(before, out, equal_nan=True)  # a non-finite rate holds the cycle
+
+
+def test_a_roll_the_gyro_alone_ran_beyond_any_lean_starts_again(settings, design):
+    """An accelerometer rejected for long (reading zero) leaves the gyro alone; a roll it carries beyond the configured
+    maximum is no lean: the channel says it is not valid (the UIHOSMO waits) and starts again from gravity."""
+    st, prm, out = _buffers(settings, design)
+    _, _, _, f_y, f_z = _imu(0.0, 0.0, 0.0, 0.0, 0.0, 10.0, prm[ck.P_IMU_HEIGHT], prm[ck.P_IMU_FORWARD])
+    ck.channel_kinematics_step(st, prm, out, 0.0, 0.0, 0.0, f_y, f_z, 10.0, True)
+    seen_invalid = False
+    for _ in range(300):  # 0.5 rad/s for 3 s, the accelerometer reading zero
+        ck.channel_kinematics_step(st, prm, out, 0.5, 0.0, 0.0, 0.0, 0.0, 10.0, True)
+        assert abs(out[ck.OUT_ROLL]) <= prm[ck.P_MAX_ROLL]
+        seen_invalid |= out[ck.OUT_VALID] == 0.0
+    assert seen_invalid
+    ck.channel_kinematics_step(st, prm, out, 0.0, 0.0, 0.0, f_y, f_z, 10.0, True)
+    assert out[ck.OUT_VALID] == 1.0 and out[ck.OUT_ROLL] == pytest.approx(0.0, abs=1e-9)

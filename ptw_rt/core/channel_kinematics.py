@@ -62,8 +62,9 @@ PARAMS = Layout(
     imu_forward=1,  # m ahead of the reference point
     a_y_r_dot=1,  # lever arm to the centre of mass: a_y(CoM) = a_y(IMU) + a_y_r_dot r_dot + a_y_phi_ddot phi_ddot
     a_y_phi_ddot=1,
+    max_roll=1,  # rad: beyond, the roll is no lean a rider survives (the gyro alone for too long): restarted
 )
-P_DT, P_G, P_PULL, P_DERIV_OMEGA, P_IMU_HEIGHT, P_IMU_FORWARD, P_A_Y_R_DOT, P_A_Y_PHI_DDOT = PARAMS.offsets
+P_DT, P_G, P_PULL, P_DERIV_OMEGA, P_IMU_HEIGHT, P_IMU_FORWARD, P_A_Y_R_DOT, P_A_Y_PHI_DDOT, P_MAX_ROLL = PARAMS.offsets
 PARAM_SIZE = PARAMS.size
 
 OUTPUTS = Layout(
@@ -91,6 +92,7 @@ def build_params(settings, design) -> np.ndarray:
         imu_forward=sens.imu_forward,
         a_y_r_dot=lever[0],
         a_y_phi_ddot=lever[1],
+        max_roll=est.max_roll,
     )
 
 
@@ -145,6 +147,9 @@ def channel_kinematics_step(
     elif math.isfinite(measured):
         roll = measured
         st[ST_INIT] = 1.0
+    if abs(roll) > prm[P_MAX_ROLL]:  # the gyro alone ran away (an accelerometer rejected for long): start again
+        roll = 0.0
+        st[ST_INIT] = 0.0
     st[ST_ROLL] = roll
     out[OUT_ROLL] = roll
     out[OUT_YAW_RATE] = yaw_rate
