@@ -1,4 +1,7 @@
-"""Stage 5, the seed observers as diagnostics: UIHOSMO (seed 000) and the super-twisting force observer (seed 003).
+"""Stage 5, the seed observers as diagnostics: UIHOSMO (seed 000) and the super-twisting force observer (seed 003),
+and the UIHOSMO on the sensors (issue #16) with its own kinematics (`ptw_rt.core.channel_kinematics`: a roll,
+rates and a_y from the raw IMU, of the attitude filter only its gyro and accelerometer calibrations), the diverse
+channel the supervisor's plausibility monitor checks the published torque against.
 
 Neither is published: the UIHOSMO's roll and rider torque (unknown inputs reconstructed from the second and
 third derivatives of the steer-angle error, `ptw_rt.core.uihosmo`; with the contract's 10-bit encoder they are
@@ -324,5 +327,6 @@ STAGE = Stage(
         "lam_yaw": uh.LAMBDA_YAW,
         "us_lam": lambda design: cus.stage_lambdas(design.us_degrees),
     },
-    doc="seed 000's UIHOSMO (roll, rider torque) and seed 003's super-twisting tyre forces, unpublished",
+    doc="seed 000's UIHOSMO (roll, rider torque), seed 003's super-twisting tyre forces, and the UIHOSMO on the "
+    "sensors with its own roll (the plausibility monitor's channel)",
 )
