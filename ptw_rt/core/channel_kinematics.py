@@ -107,7 +107,7 @@ def gravity_roll(f_y: float, f_z: float, lateral: float, p: float, p_dot: float,
     return math.atan2(lateral, g) - math.atan2(y, z)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def channel_kinematics_step(
     st: np.ndarray,
     prm: np.ndarray,
