@@ -772,10 +772,7 @@ class CandumpReader(TimeRule):
     @property
     def position(self) -> int:
         """Bytes read so far (0 for a stream): for a progress bar."""
-        try:
-            return compressed.position(self._fh) if self._fh is not None and not self._fh.closed else 0
-        except (OSError, ValueError):
-            return 0
+        return compressed.position(self._fh)
 
     def _release(self) -> None:
         if self._fh is not None:

@@ -172,9 +172,12 @@ def is_compressed(fh: object) -> bool:
     return isinstance(fh, GzipLog)
 
 
-def position(fh: IO[bytes] | GzipLog) -> int:
+def position(fh: IO[bytes] | GzipLog | None) -> int:
     """Bytes of the file read so far (the compressed file's, for a gzip log): a progress bar's numerator over
-    the file's size."""
-    if isinstance(fh, GzipLog):
-        return fh.compressed_position
-    return fh.tell()
+    the file's size. 0 for no file, a closed one, or one that cannot tell (a pipe): a progress bar, not an error."""
+    if fh is None or fh.closed:
+        return 0
+    try:
+        return fh.compressed_position if isinstance(fh, GzipLog) else fh.tell()
+    except (OSError, ValueError):
+        return 0

@@ -357,10 +357,7 @@ class _MessageReader(TimeRule):
 
     @property
     def position(self) -> int:
-        try:
-            return compressed.position(self._fh) if not self._fh.closed else 0
-        except (OSError, ValueError):
-            return 0
+        return compressed.position(self._fh)
 
     def _release(self) -> None:
         self._fh.close()
