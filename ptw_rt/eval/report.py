@@ -165,7 +165,8 @@ def _write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
             plt.close(fig)
 
     # roll (seed 000 fig. 8): published estimate, truth and the peer on top (y-limits from truth and ours);
-    # the UIHOSMO diagnostic (degrees off on the 10-bit encoder) in its own panel below
+    # the UIHOSMO diagnostics in their own panel below: seed 000's case 2 (degrees off on the 10-bit encoder) and the
+    # UIHOSMO on the sensors' own roll (issue #16, core.channel_kinematics)
     fig, axes = figure(2, height=3.2)
     ax = axes[0]
     roll_truth = deg(tr["roll"]) if "roll" in tr else None
@@ -183,7 +184,8 @@ def _write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
     ax = axes[1]
     if roll_truth is not None:
         ax.plot(t, roll_truth, **{**truth_style, "lw": 1.0})
-    ax.plot(t, deg(E[:, L.E_ROLL_UIHOSMO]), color="C0", lw=0.6, alpha=0.6, label="UIHOSMO alone (diagnostic)")
+    ax.plot(t, deg(E[:, L.E_ROLL_UIHOSMO]), color="C0", lw=0.6, alpha=0.6, label="UIHOSMO case 2 (diagnostic)")
+    ax.plot(t, deg(E[:, L.E_ROLL_UIO_SENSORS]), color="C2", lw=0.8, label="UIHOSMO on the sensors, its own roll")
     ax.set_ylabel("roll [deg]")
     save(fig, axes, "roll")
 
@@ -193,6 +195,8 @@ def _write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
     if "rider_torque" in tr:
         ax.plot(t, tr["rider_torque"], **truth_style)
     ax.plot(t, E[:, L.E_RIDER_TORQUE], **ours_style)
+    # the plausibility monitor's channel, thin and behind the published estimate
+    ax.plot(t, E[:, L.E_TORQUE_UIO_SENSORS], color="C2", lw=0.5, alpha=0.6, label="UIHOSMO on the sensors", zorder=1)
     ax.set_ylabel("rider steering torque [N m]")
     ax.set_title("Rider torque (unknown input)")
     save(fig, axes, "rider_torque")
