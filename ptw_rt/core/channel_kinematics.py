@@ -33,7 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ptw_rt.core.conditioning import derivative_filter, ground_yaw_rate, horizontal_lateral_accel
+from ptw_rt.core.conditioning import derivative_filter, ground_yaw_rate, lateral_accel_at_com
 from ptw_rt.core.params import lever_arm_coefficients
 from ptw_rt.core.stage import Layout
 
@@ -57,7 +57,9 @@ PARAMS = Layout(
     dt=1,
     g=1,
     pull=1,  # share of the accelerometer's roll taken per cycle, 1 - exp(-w_c dt)
-    deriv_omega=1,  # rad/s of the critically damped derivative filters (the conditioning stage's)
+    # rad/s of the critically damped derivative filters (the conditioning stage's bandwidth, not its filters: those
+    # differentiate the attitude filter's bias-corrected rates)
+    deriv_omega=1,
     imu_height=1,  # m above the ground
     imu_forward=1,  # m ahead of the reference point
     a_y_r_dot=1,  # lever arm to the centre of mass: a_y(CoM) = a_y(IMU) + a_y_r_dot r_dot + a_y_phi_ddot phi_ddot
@@ -155,7 +157,7 @@ def channel_kinematics_step(
     out[OUT_YAW_RATE] = yaw_rate
     out[OUT_ROLL_RATE] = p
     if accel_sound:
-        a_y = horizontal_lateral_accel(f_y, f_z, roll) + prm[P_A_Y_R_DOT] * r_dot + prm[P_A_Y_PHI_DDOT] * p_dot
+        a_y = lateral_accel_at_com(f_y, f_z, roll, r_dot, p_dot, prm[P_A_Y_R_DOT], prm[P_A_Y_PHI_DDOT])
     else:
         a_y = math.nan
     out[OUT_A_Y] = a_y

@@ -191,6 +191,15 @@ def horizontal_lateral_accel(f_y_body: float, f_z_body: float, roll: float) -> f
 
 
 @njit(cache=True)
+def lateral_accel_at_com(
+    f_y_body: float, f_z_body: float, roll: float, r_dot: float, p_dot: float, c_r_dot: float, c_phi_ddot: float
+) -> float:
+    """The centre of mass's lateral acceleration in the road plane, from the IMU's body-frame specific force and
+    the lever-arm terms c_r_dot r_dot + c_phi_ddot phi_ddot (`core.params.lever_arm_coefficients`)."""
+    return horizontal_lateral_accel(f_y_body, f_z_body, roll) + c_r_dot * r_dot + c_phi_ddot * p_dot
+
+
+@njit(cache=True)
 def kinematic_roll(speed: float, yaw_rate_ground: float, g: float) -> float:
     """Roll of a steady coordinated turn, atan(u r / g): the baseline a user would pick."""
     return math.atan(speed * yaw_rate_ground / g)
@@ -237,13 +246,20 @@ def conditioning_stage(
         p_rate = raw[inp.RAW_P]
         r_ground = ground_yaw_rate(raw[inp.RAW_Q], raw[inp.RAW_R], roll_prev)
     delta = steer_angle(raw[inp.RAW_STEER], prm[P_STEER_ZERO], prm[P_STEER_CPR])
-    a_y_imu = horizontal_lateral_accel(raw[inp.RAW_AY] - attitude[att.OUT_BAY], raw[inp.RAW_AZ], roll_prev)
     if st[ST_INIT] == 0.0:
         st[ST_DF + 0] = r_ground
         st[ST_DF + 2] = p_rate
     r_dot = derivative_filter(st, ST_DF + 0, r_ground, prm[P_DERIV_OMEGA], dt)
     p_dot = derivative_filter(st, ST_DF + 2, p_rate, prm[P_DERIV_OMEGA], dt)
-    a_y = a_y_imu + prm[P_A_Y_R_DOT] * r_dot + prm[P_A_Y_PHI_DDOT] * p_dot
+    a_y = lateral_accel_at_com(
+        raw[inp.RAW_AY] - attitude[att.OUT_BAY],
+        raw[inp.RAW_AZ],
+        roll_prev,
+        r_dot,
+        p_dot,
+        prm[P_A_Y_R_DOT],
+        prm[P_A_Y_PHI_DDOT],
+    )
     st[ST_INIT] = 1.0
 
     speed_low = speed[spd.OUT_KNOWN] == 0.0 or u < prm[P_MIN_SPEED]
