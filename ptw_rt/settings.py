@@ -108,6 +108,11 @@ TYRE_BANK_SCHEMA = Section(
         # the small-slip stiffness learns below this lean: a road of mu 0.5 then uses <= 30 % of its grip, where a
         # Magic-Formula tyre's secant slope is within 3 % of its small-slip one (docs/estimator.md, "Tyres")
         "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.15),
+        # ... but the published tyres count as tested (`valid_untested_time`, `settle_learning_time`) only by learning
+        # below this lean: near the learning range's end on a wet road the tyres work at 25-35 % of their grip, where
+        # their slope is 9-16 % below the small-slip one, and `mu_drop`'s riders, who never come more upright after
+        # the drop, were VALID there 10-18 % off (docs/estimator.md, "A hypothesis that joins the window")
+        "valid_test_max_roll": (Number("rad", gt=0, le=1.0), 0.12),
         "valid_log_sd": (Number("", ge=1e-3, le=0.2), 0.05),
         "valid_max_nis": (Number("", ge=0.5, le=1000), 6.0),
         # 10, not 12 (2026-11-26): with `valid_untested_time`, what keeps a road that changes in a corner from being
@@ -153,6 +158,10 @@ TYRE_BANK_SCHEMA = Section(
         # road needs to bring back a tyre the old road ruled out (mu_drop on seeds 0/3/5/7/11/13: followed within
         # 10 s on 25 of 30 rides at 30, 22 at 50; docs/estimator.md, "Memory")
         "evidence_floor": (Number("", ge=5, le=200), 30.0),
+        # s a hypothesis that joins the running window takes its neighbour's evidence while its filter converges
+        # from the neighbour's state: the innovations of that convergence are no evidence about its tyres
+        # (docs/estimator.md, "A hypothesis that joins the window")
+        "join_settle_time": (Number("s", ge=0, le=10), 0.5),
     },
 )
 
@@ -388,6 +397,7 @@ class TyreBankTuning:
     consistency_window: float
     fast_consistency_window: float
     max_learning_roll: float
+    valid_test_max_roll: float
     valid_log_sd: float
     valid_max_nis: float
     valid_max_nis_fast: float
@@ -408,6 +418,7 @@ class TyreBankTuning:
     running_half_width: int
     max_evidence_nis_fast: float
     evidence_floor: float
+    join_settle_time: float
 
 
 @dataclass(frozen=True)

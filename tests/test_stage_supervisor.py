@@ -31,12 +31,20 @@ def _step(
     turn=None,
     inconsistent=0.0,
     saturated=0.0,
+    roll=0.0,
 ):
     imu_ok = core_ok if imu_ok is None else imu_ok
     inputs = inp.OUTPUTS.vector({"core_ok": core_ok, "imu_ok": imu_ok, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
     speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=known)
     attitude = att.OUTPUTS.vector(
-        {"ok": 1.0, "roll_sd": roll_sd, "rejected_run": rejected, "inconsistent": inconsistent, "saturated": saturated},
+        {
+            "ok": 1.0,
+            "roll": roll,
+            "roll_sd": roll_sd,
+            "rejected_run": rejected,
+            "inconsistent": inconsistent,
+            "saturated": saturated,
+        },
         strict=False,
     )
     cond = cnd.OUTPUTS.vector({"run": run, "reasons": reasons, **(turn or {})}, strict=False)
@@ -234,6 +242,27 @@ def test_learning_the_model_did_not_explain_does_not_test_an_estimate(settings, 
         assert not _step(b, tyres={**narrow, "tyre_nis": 0.9 * max_nis, "tyre_learning": 0.0})[2] & bits
     fit = {**narrow, "tyre_nis": 0.9 * max_nis, "tyre_learning": 1.0}
     learned = [_step(b, tyres=fit)[2] & bits for _ in range(int(round(tested / dt)) + 1)]
+    assert not any(learned[:-2]) and learned[-1] == bits
+
+
+def test_learning_near_the_end_of_the_learning_range_does_not_test_an_estimate(settings, design):
+    """`mu_drop` after its drop (docs/estimator.md, "A hypothesis that joins the window"): the riders never come more
+    upright than 7-8 deg, where the wet road's tyres work at 25-35 % of their grip and their slope is 9-16 % below
+    the small-slip one; the bank learned that slope and was VALID 10-18 % off. Learning tests the estimate only
+    below `tyre_test_max_roll`, of either hand."""
+    b = sup.STAGE.alone(settings, design)
+    dt, settle = b.params[sup.P_DT], b.params[sup.P_TYRE_SETTLE]
+    tested, lean = b.params[sup.P_TYRE_SETTLE_LEARNING], b.params[sup.P_TYRE_TEST_MAX_ROLL]
+    assert 0.0 < lean < settings.estimator.tyre_bank.max_learning_roll
+    narrow = {"tyre_log_sd": 0.0, "tyre_nis": 3.0, "tyre_nis_fast": 3.0, "tyre_scale": 0.58, "tyre_evidence": 5.0}
+    bits = lay.V_CORNERING | lay.V_CAMBER
+    for k in range(int(round(2.0 * settle / dt))):  # learning, but leaning beyond it (both hands): not tested
+        hand = 1.0 if (k // 50) % 2 else -1.0
+        assert not _step(b, tyres={**narrow, "tyre_learning": 1.0}, roll=hand * 1.1 * lean)[2] & bits
+    learned = [
+        _step(b, tyres={**narrow, "tyre_learning": 1.0}, roll=-0.9 * lean)[2] & bits
+        for _ in range(int(round(tested / dt)) + 1)
+    ]
     assert not any(learned[:-2]) and learned[-1] == bits
 
 

@@ -143,6 +143,7 @@ PARAMS = Layout(
     tyre_min_evidence=1,  # s of learning cycles (the lateral stage's faded count) the estimate must rest on
     tyre_untested=1,  # s the estimate stays valid after the last cycle that tested it
     tyre_valid_max_change=1,  # nats: the bank's change statistic above this is an inconsistency, like the NIS's
+    tyre_test_max_roll=1,  # rad: learning tests the published tyres only below this lean (`tested`)
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
@@ -177,6 +178,7 @@ PARAMS = Layout(
     P_TYRE_MIN_EVIDENCE,
     P_TYRE_UNTESTED,
     P_TYRE_VALID_MAX_CHANGE,
+    P_TYRE_TEST_MAX_ROLL,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
     P_PLAUSIBILITY_LAG,
@@ -233,6 +235,7 @@ def build_params(settings, design) -> np.ndarray:
         tyre_min_evidence=est.tyre_bank.valid_min_evidence,
         tyre_untested=est.tyre_bank.valid_untested_time,
         tyre_valid_max_change=est.tyre_bank.valid_max_change,
+        tyre_test_max_roll=est.tyre_bank.valid_test_max_roll,
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
@@ -501,7 +504,11 @@ def supervisor_stage(
     drift = abs(math.log(scale / settled_at)) if scale > 0.0 and settled_at > 0.0 else math.inf
     # learning tests the estimate only on data the model explains: settled while learning at a 2 s NIS of 10-12,
     # then consistent in a slow corner that taught it nothing, it was VALID 24.5 % off (random set 41, `urban`)
-    tested = lateral[lat.OUT_TYRE_LEARNING] != 0.0 and lateral[lat.OUT_TYRE_NIS] <= prm[P_TYRE_VALID_MAX_NIS]
+    tested = (
+        lateral[lat.OUT_TYRE_LEARNING] != 0.0
+        and lateral[lat.OUT_TYRE_NIS] <= prm[P_TYRE_VALID_MAX_NIS]
+        and abs(attitude[att.OUT_ROLL]) <= prm[P_TYRE_TEST_MAX_ROLL]
+    )
     if tested:
         st[ST_TYRE_TESTED_AT] = t
     if not concentrated or not drift <= prm[P_TYRE_VALID_LOG_SD]:
