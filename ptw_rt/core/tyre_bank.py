@@ -20,7 +20,8 @@ error 17-23 % of the peak with the small-slip weights, 12-14 % with the operatin
 
 Only a window of 2 `running_half_width` + 1 filters around the small-slip posterior's most likely
 hypothesis runs (the cost is per running filter); one that joins the window starts from its neighbour's
-state and evidence.
+state and evidence, and takes its neighbour's innovations as evidence until its own filter has converged
+(`join_settle_time`, `_enter_window`).
 
 Each hypothesis runs two filters on the same measurements: its **evidence** filter, whose innovations are
 the likelihoods above, and its **publishing** filter, the same vehicle with the tyre forces' process noise
