@@ -57,10 +57,21 @@ def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0, k_after
     return Y
 
 
-def _run(bank, Y, start: float = 1.0, half_width: int | None = None, learn: bool = True, published=None):
+def _run(
+    bank,
+    Y,
+    start: float = 1.0,
+    half_width: int | None = None,
+    learn: bool = True,
+    published=None,
+    tuning=None,
+    on_cycle=None,
+):
     """The bank over Y: (scale, log sd, NIS) per cycle, the last outputs, the published states per cycle;
-    `published`: the publishing filters' tables (default: the design's)."""
-    s, tuning, grid, t = bank
+    `published`: the publishing filters' tables (default: the design's); `tuning`: instead of the bank's;
+    `on_cycle(k, state)`: called after each cycle's step with the bank's state."""
+    s, bank_tuning, grid, t = bank
+    tuning = bank_tuning if tuning is None else tuning
     pub = published if published is not None else (t["tb_Phi_pub"], t["tb_K_pub"], t["tb_Gd_pub"])
     if half_width is not None:
         tuning = replace(tuning, running_half_width=half_width)
@@ -81,6 +92,8 @@ def _run(bank, Y, start: float = 1.0, half_width: int | None = None, learn: bool
         )  # fmt: skip
         trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS], out[tb.OUT_CHANGE]
         states[k] = out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]
+        if on_cycle is not None:
+            on_cycle(k, st)
     return trace, out, states
 
 
@@ -290,32 +303,29 @@ def test_after_a_changed_road_the_stiffness_moves_to_it_and_is_never_valid_while
 def test_a_hypothesis_that_joins_the_window_takes_its_neighbours_evidence_while_it_settles(bank):
     """Three filters run (half width 1); the tyres fall from x1.0 to x0.59 (two hypotheses down) at 20 s, so the
     window walks and hypotheses join it from their neighbour's state. For `join_settle_time` each joiner's
-    evidence moves with its neighbour's, whatever its own filter's convergence says; after it, it is its own."""
+    evidence moves with its neighbour's, whatever its own filter's convergence says, and the bank still finds the
+    new tyres."""
     s, tuning, grid, t = bank
     tuning = replace(tuning, running_half_width=1, join_settle_time=0.3)
     Y = _ride(s, 1.0, 26.0, excite=True, seed=11, k_after=1.0 / 1.3**2, at=20.0)
     H = len(t["tb_scale"])
-    prm = tb.bank_params(H, DT, tuning)
-    settle = int(prm[tb.B_JOIN_SETTLE])
+    settle = int(tb.bank_params(H, DT, tuning)[tb.B_JOIN_SETTLE])
     assert settle == 30
-    st = tb.new_state(H)
-    tb.set_prior(st, prm, t["tb_scale"], 1.0, tuning.prior_sd)
-    out, scratch = np.zeros(tb.OUT_SIZE), np.zeros(tb.SCRATCH_SIZE)
-    C = dk.output_matrix(s.vehicle)
     raw = slice(tb._logl_raw0(H), tb._logl_raw0(H) + H)
+    low = tb._scalars0(H) + tb.SC_LOW
+    window_low = [H]  # the window's first hypothesis before the cycle (none before the first)
     joined = []  # (cycle, joiner, source)
-    gaps = {}  # joiner -> its log-likelihood less its source's, per cycle after joining
-    for k, y in enumerate(Y):
-        lo_before = int(st[tb._scalars0(H) + tb.SC_LOW])
-        tb.bank_step(
-            st, out, scratch, prm, y, U, y[4], True, True, True, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
-            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"], t["tb_Phi_pub"], t["tb_K_pub"], t["tb_Gd_pub"],
-        )  # fmt: skip
-        lo = int(st[tb._scalars0(H) + tb.SC_LOW])
-        if lo < lo_before and k > 20.0 / DT:
+    gaps = {}  # (cycle, joiner) -> its log-likelihood less its source's, per cycle after joining
+
+    def watch(k, st):
+        lo = int(st[low])
+        if lo < window_low[0] and k > 20.0 / DT:
             joined.append((k, lo, int(st[tb._source0(H) + lo])))
+        window_low[0] = lo
         for k0, h, src in joined:
             gaps.setdefault((k0, h), []).append(st[raw][h] - st[raw][src])
+
+    _, out, _ = _run(bank, Y, tuning=tuning, on_cycle=watch)
     assert joined, "the window never walked"
     for gap in gaps.values():
         # moved with its neighbour while settling (but for the fading towards their different priors, 1e-3 nats a
