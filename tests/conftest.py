@@ -25,17 +25,32 @@ def fresh_design(settings):
     return make_design(settings)
 
 
+VM_TOO_SLOW = "VM too slow to judge timing"  # how tests/test_vcan_integration.py starts a timing skip
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """One loud line when the SocketCAN integration tests did not run: why, and how to get them."""
     skipped = [r for r in terminalreporter.stats.get("skipped", []) if "vcan" in getattr(r, "keywords", {})]
+    reasons = [str(r.longrepr[2]) if isinstance(r.longrepr, tuple) else str(r.longrepr) for r in skipped]
+    reasons = [r.removeprefix("Skipped: ") for r in reasons]
+    timing = [r for r in reasons if r.startswith(VM_TOO_SLOW)]
+    if timing:
+        # the session ran and its functional checks were judged; only the timing ones were not
+        terminalreporter.write_line(
+            f"SOCKETCAN TIMING NOT JUDGED ({len(timing)} tests, tests/test_vcan_integration.py): {timing[0]}. "
+            "The functional vcan tests ran; the loop's timing needs a VM the host does not starve "
+            "(`ptw-rt bench` measures it natively).",
+            yellow=True,
+            bold=True,
+        )
+    skipped = [r for r in reasons if not r.startswith(VM_TOO_SLOW)]
     if not skipped:
         return
-    reason = str(skipped[0].longrepr[2]) if isinstance(skipped[0].longrepr, tuple) else str(skipped[0].longrepr)
-    reason = reason.removeprefix("Skipped: ")
+    reason = skipped[0]
     terminalreporter.write_line(
         f"SOCKETCAN INTEGRATION TESTS SKIPPED ({len(skipped)} tests, tests/test_vcan_integration.py): {reason}. "
-        "To run them: sudo apt-get install user-mode-linux can-utils kmod iproute2 (User-Mode Linux boots a kernel "
-        "with vcan when this one has none; .ci/run does this), or a kernel with the vcan module.",
+        "To run them: sudo apt-get install user-mode-linux can-utils kmod iproute2 rt-tests (User-Mode Linux boots a "
+        "kernel with vcan when this one has none; .ci/run does this), or a kernel with the vcan module.",
         red=True,
         bold=True,
     )

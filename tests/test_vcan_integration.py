@@ -15,8 +15,16 @@ User-Mode Linux VM that mounts the host's root file system through hostfs
 (docs: /work/shared/reference/vcan-without-kernel-can.md). Without either the module is skipped, with the reason.
 
 Timing inside UML is functional, not representative (system calls are slow and the VM has one CPU): latency and
-jitter are measured on the host (``ptw-rt bench``, tests/test_daemon.py). The tolerances below hold there with a
-wide margin (figures in the comments); each is documented where it is used.
+jitter are measured on the host (``ptw-rt bench``, tests/test_daemon.py). The session runs the daemon at SCHED_FIFO
+40 as systemd does on the vehicle, the sensors and other nodes (canplayer, cangen) just above it, the recorder below.
+How fast the VM is depends on the host: the session measures what a system call costs in it and runs a SCHED_FIFO 99
+100 Hz timer beside everything (cyclictest). Where the VM is too slow to carry the session in real time (seen: 150 us
+a call, against well under 1 us natively), or its own timer woke a period late within a check's window, that check's
+timing (rates, detection delays, VALID over the ride, estimates against the replay) is skipped with the figures, and
+the summary line says so. What does not depend on the VM's speed is judged on any VM: the session and the daemon's
+clean exit, every frame decoded with its CRC and counter, nothing lost by the capture, every 10 ms period either
+published or counted as missed, the daemon alive through random traffic. The tolerances below hold on a fit VM with
+a wide margin (figures in the comments); each is documented where it is used.
 """
 
 from __future__ import annotations
@@ -158,6 +166,9 @@ class Session:
     replay: list[Frame]  # ptw-rt replay of the ride log (log time)
     daemon_stderr: str
     codec: FrameCodec
+    probe: np.ndarray | None  # the VM's 100 Hz timer: rows (due time, lateness in s); None without cyclictest
+    syscall_us: float | None  # the larger of the VM's system-call costs before and after the daemon ran
+    capture_drops: int  # frames the kernel dropped on candump's socket (candump -d)
     figures: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def outputs(self, lo: float = -math.inf, hi: float = math.inf) -> list[Frame]:
@@ -206,6 +217,25 @@ def _parse_cangen(text: str) -> list[tuple[int, bytes, bool, bool]]:
             rtr = data.startswith("R")
             out.append((int(fid, 16), b"" if rtr else bytes.fromhex(data.replace(".", "")), len(fid) == 8, rtr))
     return out
+
+
+def _parse_probe(path: Path, start: float | None) -> np.ndarray | None:
+    """cyclictest -v lines "thread: loop: lateness_us" -> rows (due time, lateness s); loop k is due at
+    start + (k + 1) * 10 ms (absolute deadlines, like the daemon's)."""
+    if start is None or not path.exists():
+        return None
+    rows = []
+    for line in path.read_text(errors="replace").splitlines():
+        parts = line.split(":")
+        if len(parts) == 3 and parts[0].strip() == "0" and parts[1].strip().isdigit() and parts[2].strip().isdigit():
+            rows.append((start + (int(parts[1]) + 1) * 0.01, int(parts[2]) * 1e-6))
+    return np.array(rows) if rows else None
+
+
+def _capture_drops(text: str) -> int:
+    """candump -d: "DROPCOUNT: dropped N CAN frame(s) on 'vcan0' socket (total drops T)"; the last T."""
+    totals = re.findall(r"total drops (\d+)", text)
+    return int(totals[-1]) if totals else 0
 
 
 def _read_kv(path: Path, conv) -> dict:
@@ -306,6 +336,16 @@ def _run_native(results: Path, script: Path, env_file: Path) -> tuple[int, str]:
 # more daemon overruns in one session than this: the VM was starved, run it once more (the variable exercises it)
 STARVED_OVERRUNS = int(os.environ.get("PTW_RT_VCAN_STARVED_OVERRUNS", "50"))
 
+# Whether this VM can judge the daemon's timing at all. The session asks the VM for several thousand system calls a
+# second (canplayer ~400 frames/s, candump reading and writing ~900, the daemon's receives, sends and sleeps, the
+# probe's 200), and inside User-Mode Linux each is a round trip through the host. On a host where one costs 150 us
+# (measured here on 2026-11-27: the VM saturated, the probe on time but the daemon missing 10-50 cycles a second
+# during the rides, at SCHED_FIFO 40) no loop could keep 100 Hz. Above this cost, or where the probe itself woke a
+# period late, the timing checks are skipped with the figures; what does not depend on timing is judged anyway.
+VM_SYSCALL_FIT_US = float(os.environ.get("PTW_RT_VCAN_SYSCALL_FIT_US", "50"))
+PROBE_LATE_S = 0.010  # a wake-up a whole period late: the VM itself missed a cycle
+VM_TOO_SLOW = "VM too slow to judge timing"  # how a timing skip starts (tests/conftest.py's summary line looks for it)
+
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory) -> Iterator[Session]:
@@ -365,10 +405,11 @@ def session(tmp_path_factory) -> Iterator[Session]:
 
     wall, console, daemon_stderr = run_once(results)
     overruns = [int(n) for n in re.findall(r"overruns=(\d+)", daemon_stderr)]
-    if overruns and overruns[-1] > STARVED_OVERRUNS:
+    vm_fit = _syscall_us(results) <= VM_SYSCALL_FIT_US
+    if vm_fit and overruns and overruns[-1] > STARVED_OVERRUNS:
         # the guest lost the CPU for tens of milliseconds at a time (a healthy session has 0-2 overruns): a starved
         # VM says nothing about the daemon, so the session runs once more, from scratch, and the tests judge that one
-        # (two starved sessions in a row fail them, with the overload hint)
+        # (a VM too slow for real time altogether gets no second run: the host would not be faster)
         starved = results.with_name("results-starved")
         results.rename(starved)
         results.mkdir()
@@ -378,7 +419,8 @@ def session(tmp_path_factory) -> Iterator[Session]:
         wall, console, daemon_stderr = run_once(results)
     status = _read_kv(results / "status.env", int)
     marks = _read_kv(results / "marks.txt", float)
-    frames = _parse_candump((results / "candump.log").read_text())
+    capture = (results / "candump.log").read_text()
+    frames = _parse_candump(capture)
 
     # cangen's frames, found in the capture by content (random ids also hit the estimator's own 0x300..0x311)
     sent = collections.Counter()
@@ -410,10 +452,18 @@ def session(tmp_path_factory) -> Iterator[Session]:
         replay=log_frames(replay_log),
         daemon_stderr=daemon_stderr,
         codec=codec,
+        probe=_parse_probe(results / "probe.txt", marks.get("probe_start")),
+        syscall_us=_syscall_us(results),
+        capture_drops=_capture_drops(capture),
     )
     s.figures["session_wall_s"] = round(wall, 1)
     s.figures["host_load_1min"] = round(os.getloadavg()[0], 2)  # a loaded host slows the VM: see the rates
     s.figures["daemon_start_to_first_frame_s"] = round(marks.get("daemon_ready", math.nan) - marks["daemon_start"], 1)
+    s.figures["vm_syscall_us"] = s.syscall_us
+    if s.probe is not None:
+        s.figures["vm_probe_late_wakeups"] = int((s.probe[:, 1] > PROBE_LATE_S).sum())
+        s.figures["vm_probe_worst_ms"] = round(1e3 * float(s.probe[:, 1].max()), 1)
+    s.figures["capture_drops"] = s.capture_drops
     s.figures["random_frames_sent"] = n_sent
     s.figures["random_frames_seen"] = len(random)
     yield s
@@ -440,6 +490,53 @@ def _log_time_map(session: Session, played: list[Frame], lo: float, hi: float):
     bus_t = np.array([f.t for f in on_bus])
     log_t = np.array([f.t for f in played])
     return lambda t: np.interp(t, bus_t, log_t), bus_t[0], bus_t[-1]
+
+
+def _syscall_us(results: Path) -> float:
+    """The VM's cost of one system call (vm.txt: before the daemon started and after it exited; the larger)."""
+    ns = _read_kv(results / "vm.txt", float).values()
+    return round(max(ns) / 1e3, 2) if ns else math.nan
+
+
+def _timing_unjudgeable(session: Session, lo: float, hi: float) -> str | None:
+    """Why this VM cannot judge the daemon's timing over [lo, hi), or None when it can.
+
+    Judged from outside the daemon: what a system call costs in the VM, and a SCHED_FIFO 99 timer that runs beside
+    it the whole session (cyclictest). A VM that cannot keep its own timer on time, or whose system calls are too
+    slow to carry the session's traffic, would make any loop miss cycles; the daemon's loop timing on a real machine
+    is measured by `ptw-rt bench` and tests/test_daemon.py.
+    """
+    if not session.syscall_us <= VM_SYSCALL_FIT_US:  # nan (not measured) counts as too slow
+        return (
+            f"{VM_TOO_SLOW}: a system call costs {session.syscall_us} us in this VM "
+            f"(fit: <= {VM_SYSCALL_FIT_US:g} us), too slow to carry the session's traffic in real time"
+        )
+    if session.probe is not None:
+        t, late = session.probe[:, 0], session.probe[:, 1]
+        window = late[(t >= lo) & (t < hi)]
+        n_late = int((window > PROBE_LATE_S).sum())
+        if n_late:
+            return (
+                f"{VM_TOO_SLOW}: its own 100 Hz timer (cyclictest at SCHED_FIFO 99) woke {n_late} "
+                f"times a period or more late in this window, worst {1e3 * window.max():.1f} ms: the host starved it"
+            )
+    return None
+
+
+def _judge_timing(session: Session, lo: float, hi: float) -> None:
+    """Skip the calling test, with the measured reason, when the VM cannot judge timing over [lo, hi)."""
+    reason = _timing_unjudgeable(session, lo, hi)
+    if reason is not None:
+        pytest.skip(reason)
+
+
+def _cycle_accounting(session: Session, lo: float, hi: float) -> tuple[int, int, float]:
+    """(EST_Roll frames published, cycles the daemon counted missed, 10 ms periods elapsed) between the first and the
+    last EST_Status frame in [lo, hi) (their OverrunCount brackets the count)."""
+    status = session.decoded("EST_Status", lo, hi)
+    (t0, v0), (t1, v1) = status[0], status[-1]
+    published = len(session.decoded("EST_Roll", t0, t1))
+    return published, int(v1["OverrunCount"] - v0["OverrunCount"]), (t1 - t0) / 0.01
 
 
 def _overload_hint(session: Session) -> str:
@@ -479,7 +576,8 @@ def test_session_ran_and_daemon_exited_cleanly(session):
     m = re.search(r"stopped after (\d+) cycles", session.daemon_stderr)
     assert m is not None, session.daemon_stderr[-3000:]
     cycles = int(m.group(1))
-    # every cycle's EST_Roll made it through vcan0 into the capture
+    # every cycle's EST_Roll made it through vcan0 into the capture, which lost nothing
+    assert session.capture_drops == 0
     assert len(session.decoded("EST_Roll")) == cycles
     # the last status frame is the shutdown one (EST_Status_Valid = 0), all others valid
     status = session.decoded("EST_Status")
@@ -519,9 +617,30 @@ def test_every_output_frame_decodes_with_counters_and_crcs(session):
     session.figures["output_frames_checked"] = sum(len(v) for v in by_name.values())
 
 
+PHASES = {  # name: (start mark, end mark)
+    "play1": ("play1_start", "play1_end"),
+    "play2": ("play2_start", "play2_end"),
+    "cangen": ("cangen_start", "cangen_end"),
+    "after_cangen": ("cangen_end", "sigterm"),
+}
+
+
+@pytest.mark.parametrize("phase", list(PHASES))
+def test_every_period_is_published_or_counted_missed(session, phase):
+    """Judged on any VM, however slow: the loop runs on absolute deadlines, so each 10 ms period either publishes
+    once or is counted as missed (OverrunCount, and DEGRADED past the overrun rule); nothing is dropped silently,
+    caught up in a burst, or published twice."""
+    lo, hi = (session.marks[m] for m in PHASES[phase])
+    published, missed, periods = _cycle_accounting(session, lo, hi)
+    session.figures[f"periods_{phase}"] = f"{published} published + {missed} missed of {periods:.0f}"
+    assert published + missed == pytest.approx(periods, rel=0.01, abs=2), (phase, published, missed, periods)
+    assert published >= 0.5 * periods, (phase, published, periods)  # a loop that runs, not one that only counts
+
+
 @pytest.mark.parametrize("phase", ["play1", "play2"])
 def test_output_rates_while_a_ride_is_played(session, phase):
     lo, hi = session.marks[f"{phase}_start"], session.marks[f"{phase}_end"]
+    _judge_timing(session, lo, hi)
     for name, hz in [(n, 100.0) for n in FAST] + [(n, 10.0) for n in SLOW]:
         times = [t for t, _ in session.decoded(name, lo, hi)]
         rate = _rate(times)
@@ -548,6 +667,7 @@ def test_estimates_match_offline_replay(session):
     codec = session.codec
     lo, hi = session.marks["play1_start"], session.marks["play1_end"]
     to_log, first_in, last_in = _log_time_map(session, session.ride, lo, hi)
+    _judge_timing(session, lo, hi)  # a starved loop misses samples: the estimates then differ for that reason
     t_log0 = session.ride[0].t
 
     roll_id = codec.frame_id("EST_Roll")
@@ -597,6 +717,7 @@ def test_silent_steering_encoder_degrades_and_recovers(session):
     k = int(np.argmax(gaps))
     t_last, t_back = float(steer_t[k]), float(steer_t[k + 1])
     assert gaps[k] == pytest.approx(SILENT_TO_S - SILENT_FROM_S + 0.01, abs=0.05)
+    _judge_timing(session, lo, hi)  # detection delay and recovery are times; a starved VM makes every input stale
 
     # VALID before the encoder goes silent
     status = session.decoded("EST_Status", lo, hi)
@@ -635,16 +756,26 @@ def test_silent_steering_encoder_degrades_and_recovers(session):
 
 
 def test_random_traffic_does_not_stop_the_daemon(session):
+    """Functional, on any VM: the daemon keeps its loop through the random frames and after them (the periods are
+    accounted for in test_every_period_is_published_or_counted_missed), and its status frames stay well formed."""
     lo, hi = session.marks["cangen_start"], session.marks["cangen_end"]
     after_lo, after_hi = hi, session.marks["sigterm"]
     assert hi - lo > 2.0  # 2,500 frames at 1 ms gaps
+    for a, b in ((lo, hi), (after_lo, after_hi)):
+        assert len(session.decoded("EST_Roll", a, b)) >= 0.5 * 100 * (b - a)
+    status = session.decoded("EST_Status", after_lo, after_hi)
+    assert status and all(v["EST_Status_Valid"] == 1 for _, v in status)
+    ids = set(session.codec.input_ids) | session.output_ids
+    session.figures["random_frames_with_dbc_ids"] = sum(1 for f in session.random if f.fid in ids and not f.extended)
+
+
+def test_output_rate_during_and_after_random_traffic(session):
+    lo, hi = session.marks["cangen_start"], session.marks["cangen_end"]
+    after_lo, after_hi = hi, session.marks["sigterm"]
+    _judge_timing(session, lo, after_hi)
     for label, (a, b) in (("during", (lo, hi)), ("after", (after_lo, after_hi))):
         times = [t for t, _ in session.decoded("EST_Roll", a, b)]
         rate = _rate(times)
         session.figures[f"rate_cangen_{label}_hz"] = round(rate, 3)
         # +-1 % as while the rides are played; measured inside UML: within 0.1 %
         assert rate == pytest.approx(100.0, rel=0.01), (label, rate, _overload_hint(session))
-    status = session.decoded("EST_Status", after_lo, after_hi)
-    assert status and all(v["EST_Status_Valid"] == 1 for _, v in status)
-    ids = set(session.codec.input_ids) | session.output_ids
-    session.figures["random_frames_with_dbc_ids"] = sum(1 for f in session.random if f.fid in ids and not f.extended)
