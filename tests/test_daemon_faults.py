@@ -434,29 +434,57 @@ def test_missed_cycles_cost(tmp_path):
     assert 0.1 < np.degrees(deviation) < 1.0, np.degrees(deviation)
 
 
+# A test of the loop's own missed cycles needs a host that lets it keep its period: a run in which the loop missed
+# cycles where the test injected nothing (another job had the CPUs) runs again, up to this many times in all; a host
+# that starves every run skips the test with the figure (`ptw-rt bench` measures the loop's timing on its own).
+QUIET_HOST_ATTEMPTS = 3
+
+
+def _on_a_quiet_host(run_once, host_missed) -> object:
+    """``run_once()`` until ``host_missed(result)`` is 0 (at most QUIET_HOST_ATTEMPTS runs); its result."""
+    counts = []
+    for _ in range(QUIET_HOST_ATTEMPTS):
+        result = run_once()
+        counts.append(host_missed(result))
+        if counts[-1] == 0:
+            return result
+    pytest.skip(
+        f"host too busy to judge the loop's timing: it missed cycles where nothing was injected in each of "
+        f"{QUIET_HOST_ATTEMPTS} runs ({counts})"
+    )
+
+
 def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frames):
-    channel = _channel()
-    daemon = _daemon(tmp_path, channel=channel)
-    trace: list[tuple[float, int, int, int]] = []  # (ride time, mode, overruns so far, reason bits)
-    # at these ride times the loop stalls 25 ms (1 missed cycle: 10 ms is the period, 20 ms still on time), then
-    # 65 ms (5 missed cycles)
-    stalls = {2.5: 0.025, 4.0: 0.065}
-    t0 = []
-    degraded_reasons: list[int] = []
+    def run_once():
+        channel = _channel()
+        daemon = _daemon(tmp_path, channel=channel)
+        trace: list[tuple[float, int, int, int]] = []  # (ride time, mode, overruns so far, reason bits)
+        # at these ride times the loop stalls 25 ms (1 missed cycle: 10 ms is the period, 20 ms still on time),
+        # then 65 ms (5 missed cycles)
+        stalls = {2.5: 0.025, 4.0: 0.065}
+        t0 = []
+        degraded_reasons: list[int] = []
 
-    def on_cycle(now, e):
-        if not t0:
-            t0.append(now)
-        trace.append((now - t0[0], int(e[E_MODE]), daemon.overruns, int(e[E_REASONS])))
-        if int(e[E_MODE]) == MODE_DEGRADED:
-            degraded_reasons.append(daemon.runner.process_reasons)
-        for at in list(stalls):
-            if now - t0[0] >= at:
-                time.sleep(stalls.pop(at))
+        def on_cycle(now, e):
+            if not t0:
+                t0.append(now)
+            trace.append((now - t0[0], int(e[E_MODE]), daemon.overruns, int(e[E_REASONS])))
+            if int(e[E_MODE]) == MODE_DEGRADED:
+                degraded_reasons.append(daemon.runner.process_reasons)
+            for at in list(stalls):
+                if now - t0[0] >= at:
+                    time.sleep(stalls.pop(at))
 
-    daemon.on_cycle = on_cycle
-    _run(daemon, 5.5, Feeder(channel, ride_frames, duration=6.0))
-    assert not stalls
+        daemon.on_cycle = on_cycle
+        _run(daemon, 5.5, Feeder(channel, ride_frames, duration=6.0))
+        assert not stalls
+        return daemon, trace, degraded_reasons
+
+    def host_missed(result):  # before the first stall
+        _, trace, _ = result
+        return next(n for t, _, n, _ in trace if t >= 2.4) - next(n for t, _, n, _ in trace if t >= 0.5)
+
+    daemon, trace, degraded_reasons = _on_a_quiet_host(run_once, host_missed)
     before = [m for t, m, *_ in trace if 2.0 <= t < 2.5]
     # a failure names the reason bits of every cycle that was not VALID (an overrun must be the only one)
     isolated = [(m, r) for t, m, _, r in trace if 2.5 <= t < 3.9 and m != MODE_VALID]
@@ -490,26 +518,32 @@ def _reload_daemon(tmp_path, notify, channel, config: Path) -> Daemon:
 
 
 def test_reload_of_a_large_config_misses_no_cycle(notify, tmp_path, ride_frames):
-    channel = _channel()
-    daemon = _reload_daemon(tmp_path, notify, channel, _big_config(tmp_path))
-    trace: list[tuple[float, int]] = []
-    asked: list[float] = []
+    def run_once():
+        notify.messages.clear()
+        channel = _channel()
+        daemon = _reload_daemon(tmp_path, notify, channel, _big_config(tmp_path))
+        trace: list[tuple[float, int]] = []
+        asked: list[float] = []
+        overruns: list[int] = []  # a second before the request, at it, and a second later
+        swapped: list[int] = []  # reloads a second after the request
 
-    overruns: list[int] = []  # at the request and a second later
-    swapped: list[int] = []  # reloads a second after the request
+        def on_cycle(now, e):
+            trace.append((now, int(e[E_MODE])))
+            if len(trace) == 150:
+                overruns.append(daemon.overruns)
+            if not asked and daemon.mode == MODE_VALID and len(trace) > 250:
+                asked.append(now)
+                overruns.append(daemon.overruns)
+                daemon.request_reload()
+            elif asked and len(overruns) == 2 and now >= asked[0] + 1.0:
+                overruns.append(daemon.overruns)
+                swapped.append(daemon.reloads)
 
-    def on_cycle(now, e):
-        trace.append((now, int(e[E_MODE])))
-        if not asked and daemon.mode == MODE_VALID and len(trace) > 250:
-            asked.append(now)
-            overruns.append(daemon.overruns)
-            daemon.request_reload()
-        elif asked and len(overruns) == 1 and now >= asked[0] + 1.0:
-            overruns.append(daemon.overruns)
-            swapped.append(daemon.reloads)
+        daemon.on_cycle = on_cycle
+        _run(daemon, 4.5, Feeder(channel, ride_frames, duration=5.0))
+        return daemon, trace, asked, overruns[1:], swapped, overruns[1] - overruns[0] if len(overruns) > 1 else 0
 
-    daemon.on_cycle = on_cycle
-    _run(daemon, 4.5, Feeder(channel, ride_frames, duration=5.0))
+    daemon, trace, asked, overruns, swapped, _ = _on_a_quiet_host(run_once, lambda r: r[-1])
     assert asked and daemon.reloads == 1 and daemon.reload_failures == 0
     # in the loop this reload cost ~20 missed cycles (0.2 s of parsing); off it, none: up to 2 are tolerated for a
     # machine loaded by other jobs (2 keep VALID by the overrun rule, so the mode check below still holds)
