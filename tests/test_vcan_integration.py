@@ -506,7 +506,9 @@ def _timing_unjudgeable(session: Session, lo: float, hi: float) -> str | None:
     slow to carry the session's traffic, would make any loop miss cycles; the daemon's loop timing on a real machine
     is measured by `ptw-rt bench` and tests/test_daemon.py.
     """
-    if not session.syscall_us <= VM_SYSCALL_FIT_US:  # nan (not measured) counts as too slow
+    if math.isnan(session.syscall_us):
+        return f"{VM_TOO_SLOW}: the session did not measure what a system call costs in the VM (vm.txt)"
+    if session.syscall_us > VM_SYSCALL_FIT_US:
         return (
             f"{VM_TOO_SLOW}: a system call costs {session.syscall_us} us in this VM "
             f"(fit: <= {VM_SYSCALL_FIT_US:g} us), too slow to carry the session's traffic in real time"
