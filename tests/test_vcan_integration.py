@@ -494,8 +494,9 @@ def _log_time_map(session: Session, played: list[Frame], lo: float, hi: float):
 
 def _syscall_us(results: Path) -> float:
     """The VM's cost of one system call (vm.txt: before the daemon started and after it exited; the larger)."""
-    ns = _read_kv(results / "vm.txt", float).values()
-    return round(max(ns) / 1e3, 2) if ns else math.nan
+    ns = list(_read_kv(results / "vm.txt", float).values())
+    # 0: dd's summary line was not found (awk's empty sum), which is no measurement
+    return round(max(ns) / 1e3, 2) if ns and min(ns) > 0 else math.nan
 
 
 def _timing_unjudgeable(session: Session, lo: float, hi: float) -> str | None:
