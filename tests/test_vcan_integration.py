@@ -568,6 +568,47 @@ def _valid(status: dict) -> bool:
 # ---------------------------------------------------------------------------------------------------- tests
 
 
+def _gate_session(syscall_us: float, late_s: list[float] | None) -> Session:
+    """A session with only what the timing gate reads: the system-call cost and the probe (one wake-up per 10 ms
+    from t = 100 s)."""
+    probe = None if late_s is None else np.array([(100.0 + 0.01 * k, x) for k, x in enumerate(late_s)])
+    return Session(
+        where="uml", results=Path("."), wall_s=0.0, status={}, marks={}, frames=[], random=[], ride=[], silent=[],
+        replay=[], daemon_stderr="", codec=None, probe=probe, syscall_us=syscall_us, capture_drops=0,
+    )  # fmt: skip
+
+
+def test_the_timing_gate_judges_a_fit_vm_and_names_what_makes_one_unfit():
+    """No VM needed: the rule that decides whether the timing checks run, on made-up measurements."""
+    on_time = [0.0002] * 300  # 3 s of wake-ups 0.2 ms late
+    assert _timing_unjudgeable(_gate_session(20.0, on_time), 100.0, 103.0) is None
+    assert _timing_unjudgeable(_gate_session(20.0, None), 100.0, 103.0) is None  # no cyclictest: the cost alone
+    slow = _timing_unjudgeable(_gate_session(150.0, on_time), 100.0, 103.0)
+    assert slow.startswith(VM_TOO_SLOW) and "150.0 us" in slow
+    unmeasured = _timing_unjudgeable(_gate_session(math.nan, on_time), 100.0, 103.0)
+    assert unmeasured.startswith(VM_TOO_SLOW) and "did not measure" in unmeasured
+    # one wake-up a period late at 101.5 s: that window is not judged, a window without it is
+    stalled = on_time[:150] + [0.035] + on_time[151:]
+    late = _timing_unjudgeable(_gate_session(20.0, stalled), 101.0, 102.0)
+    assert late.startswith(VM_TOO_SLOW) and "woke 1 times" in late and "35.0 ms" in late
+    assert _timing_unjudgeable(_gate_session(20.0, stalled), 102.0, 103.0) is None
+
+
+def test_the_session_parsers_read_cyclictest_candump_drops_and_the_vm_file(tmp_path):
+    probe = tmp_path / "probe.txt"
+    probe.write_text("Max CPUs = 1\nThread 0 Interval: 10000\n       0:       0:      32\n       0:       1:   15068\n")
+    rows = _parse_probe(probe, 50.0)
+    assert rows.tolist() == [[50.01, 32e-6], [50.02, 0.015068]]
+    assert _parse_probe(probe, None) is None and _parse_probe(tmp_path / "none.txt", 50.0) is None
+    dump = "(1.0) vcan0 300#00\nDROPCOUNT: dropped 3 CAN frames on 'vcan0' socket (total drops 3)\n"
+    assert _capture_drops(dump + "DROPCOUNT: dropped 2 CAN frames on 'vcan0' socket (total drops 5)\n") == 5
+    assert _capture_drops("(1.0) vcan0 300#00\n") == 0
+    (tmp_path / "vm.txt").write_text("syscall_ns_before 150000\nsyscall_ns_after 120000\n")
+    assert _syscall_us(tmp_path) == 150.0
+    (tmp_path / "vm.txt").write_text("syscall_ns_before 0\n")  # dd's summary not found
+    assert math.isnan(_syscall_us(tmp_path))
+
+
 def test_session_ran_and_daemon_exited_cleanly(session):
     st = session.status
     for key in ("MODULES_RC", "VCAN_RC", "READY_RC", "PLAY1_RC", "PLAY2_RC", "CANGEN_RC", "CANGEN_EXT_RC"):
