@@ -533,13 +533,31 @@ def _judge_timing(session: Session, lo: float, hi: float) -> None:
         pytest.skip(reason)
 
 
-def _cycle_accounting(session: Session, lo: float, hi: float) -> tuple[int, int, float]:
-    """(EST_Roll frames published, cycles the daemon counted missed, 10 ms periods elapsed) between the first and the
-    last EST_Status frame in [lo, hi) (their OverrunCount brackets the count)."""
+def _cycle_accounting(session: Session, lo: float, hi: float) -> tuple[int, int, float, float]:
+    """(EST_Roll frames published, cycles the daemon counted missed, 10 ms periods elapsed, tolerance in periods)
+    between two EST_Status frames in [lo, hi), whose OverrunCount brackets the count.
+
+    The periods come from the brackets' capture times, which are their send times: a cycle that stalled after it woke
+    sends late, and the next cycle counts what it missed, so a late bracket shortens the span by its lateness. Each
+    bracket is therefore the calmest of the window's first (last) five status frames: the one whose EST_Roll frames
+    around it (two before, one after) span the least time. That span, less one period, bounds the bracket's lateness
+    (one period when nothing stalled), and the tolerance is both bounds plus one frame for the order within a cycle.
+    """
+    period = 0.01
     status = session.decoded("EST_Status", lo, hi)
-    (t0, v0), (t1, v1) = status[0], status[-1]
-    published = len(session.decoded("EST_Roll", t0, t1))
-    return published, int(v1["OverrunCount"] - v0["OverrunCount"]), (t1 - t0) / 0.01
+    roll_t = np.array([t for t, _ in session.decoded("EST_Roll")])
+
+    def lateness_bound(t: float) -> float:
+        k = int(np.searchsorted(roll_t, t))
+        return roll_t[k] - roll_t[k - 2] - period if 2 <= k < len(roll_t) else math.inf
+
+    first, last = status[:5], status[-5:]
+    i0 = min(range(len(first)), key=lambda i: lateness_bound(first[i][0]))
+    i1 = min(range(len(last)), key=lambda i: lateness_bound(last[i][0]))
+    (t0, v0), (t1, v1) = first[i0], last[i1]
+    published = int(((roll_t >= t0) & (roll_t < t1)).sum())
+    tolerance = 1.0 + (lateness_bound(t0) + lateness_bound(t1)) / period
+    return published, int(v1["OverrunCount"] - v0["OverrunCount"]), (t1 - t0) / period, tolerance
 
 
 def _overload_hint(session: Session) -> str:
@@ -675,9 +693,12 @@ def test_every_period_is_published_or_counted_missed(session, phase):
     once or is counted as missed (OverrunCount, and DEGRADED past the overrun rule); nothing is dropped silently,
     caught up in a burst, or published twice."""
     lo, hi = (session.marks[m] for m in PHASES[phase])
-    published, missed, periods = _cycle_accounting(session, lo, hi)
-    session.figures[f"periods_{phase}"] = f"{published} published + {missed} missed of {periods:.0f}"
-    assert published + missed == pytest.approx(periods, rel=0.01, abs=2), (phase, published, missed, periods)
+    published, missed, periods, tolerance = _cycle_accounting(session, lo, hi)
+    figure = f"{published} published + {missed} missed of {periods:.1f} (+-{tolerance:.1f})"
+    session.figures[f"periods_{phase}"] = figure
+    # rel: the deadlines are on the monotonic clock, the capture's stamps on the real-time one, which NTP may slew
+    # by up to 500 ppm (0.2 % is four times that: 2.4 periods over a ride's 12 s); measured here: within 0.9 periods
+    assert published + missed == pytest.approx(periods, rel=0.002, abs=tolerance), (phase, figure)
     # a loop that runs, not one that only counts (on the slowest VM seen, 150 us a system call: 83 % published)
     assert published >= 0.2 * periods, (phase, published, periods)
 
