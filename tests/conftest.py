@@ -25,7 +25,7 @@ def fresh_design(settings):
     return make_design(settings)
 
 
-VM_TOO_SLOW = "VM too slow to judge timing"  # how tests/test_vcan_integration.py starts a timing skip
+VM_TOO_SLOW = "VM too slow to judge timing"  # how a timing skip of tests/test_vcan_integration.py starts
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):

@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import VM_TOO_SLOW  # how a timing skip starts: the summary line there looks for it
 
 from ptw_rt.core.layout import MODE_DEGRADED, MODE_FAULT, MODE_NAMES, MODE_VALID, REASON_OVERRUN
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
@@ -167,7 +168,7 @@ class Session:
     daemon_stderr: str
     codec: FrameCodec
     probe: np.ndarray | None  # the VM's 100 Hz timer: rows (due time, lateness in s); None without cyclictest
-    syscall_us: float | None  # the larger of the VM's system-call costs before and after the daemon ran
+    syscall_us: float  # the larger of the VM's system-call costs before and after the daemon ran (nan: unmeasured)
     capture_drops: int  # frames the kernel dropped on candump's socket (candump -d)
     figures: dict[str, float] = dataclasses.field(default_factory=dict)
 
@@ -344,7 +345,6 @@ STARVED_OVERRUNS = int(os.environ.get("PTW_RT_VCAN_STARVED_OVERRUNS", "50"))
 # period late, the timing checks are skipped with the figures; what does not depend on timing is judged anyway.
 VM_SYSCALL_FIT_US = float(os.environ.get("PTW_RT_VCAN_SYSCALL_FIT_US", "50"))
 PROBE_LATE_S = 0.010  # a wake-up a whole period late: the VM itself missed a cycle
-VM_TOO_SLOW = "VM too slow to judge timing"  # how a timing skip starts (tests/conftest.py's summary line looks for it)
 
 
 @pytest.fixture(scope="module")
