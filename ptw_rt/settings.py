@@ -158,6 +158,17 @@ TYRE_BANK_SCHEMA = Section(
         # road needs to bring back a tyre the old road ruled out (mu_drop on seeds 0/3/5/7/11/13: followed within
         # 10 s on 25 of 30 rides at 30, 22 at 50; docs/estimator.md, "Memory")
         "evidence_floor": (Number("", ge=5, le=200), 30.0),
+        # The data measure the tyres' slope where they work, which is below the small-slip stiffness once they use a
+        # share of their grip (a wet road's riders learn at 25-35 % of it: 7-10 % soft). The published scale is the
+        # bank's over the mean slope ratio of the cycles it learned from, for a Magic-Formula tyre
+        # F = D sin(C_a atan(B_a alpha) + C_g atan(B_g gamma)) whose peak D = k x `saturation_friction` x F_z
+        # falls with k (k read as the road's grip: docs/estimator.md, "The tyres' slope at their working point").
+        # C_a, C_g: the tyre's shape factors (>= 1: a lateral Magic Formula's is 1.3-1.6); the correction's own
+        # uncertainty, this share of its log, joins the spread the valid bit is judged on.
+        "saturation_slip_shape": (Number("", ge=1.0, le=2.0), 1.5),
+        "saturation_camber_shape": (Number("", ge=0.5, le=2.0), 1.0),
+        "saturation_friction": (Number("", ge=0.2, le=2.0), 1.0),
+        "saturation_uncertainty": (Number("", ge=0.0, le=1.0), 0.5),
         # s a hypothesis that joins the running window takes its neighbour's evidence while its filter converges
         # from the neighbour's state: the innovations of that convergence are no evidence about its tyres
         # (docs/estimator.md, "A hypothesis that joins the window")
@@ -419,6 +430,10 @@ class TyreBankTuning:
     max_evidence_nis_fast: float
     evidence_floor: float
     join_settle_time: float
+    saturation_slip_shape: float
+    saturation_camber_shape: float
+    saturation_friction: float
+    saturation_uncertainty: float
 
 
 @dataclass(frozen=True)

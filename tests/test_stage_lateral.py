@@ -103,3 +103,63 @@ def test_the_tyre_evidence_count_fades_with_the_banks_memories(settings, design)
     assert faded == pytest.approx(count * np.exp(-30.0 / tun.idle_memory), rel=1e-3)
     lat.reset(st, b.params)
     assert st[lat.ST_TYRE_EVIDENCE] == 0.0
+
+
+@pytest.mark.parametrize("axle", [0, 1])
+@pytest.mark.parametrize("mu", [1.0, 0.5])
+def test_the_slope_ratio_is_the_saturating_tyres_slope_over_its_small_slip_stiffness(settings, design, axle, mu):
+    """The simulator's tyre law (a Magic Formula whose peak is mu F_z and whose small-slip slope is mu C): at a
+    working point (alpha, gamma), dF/dalpha / (mu C_alpha) is what `_slope_ratio` gives from the force, the lean
+    and k = mu alone. That is what the published scale is corrected by (the data measure the slope there)."""
+    from ptw_rt.sim.tyres import TyreShape, lateral_force
+
+    b = lat.STAGE.alone(settings, design)
+    prm = b.params
+    shape = TyreShape()
+    fz = prm[lat.P_AXLE_LOAD + axle]
+    c_alpha, c_gamma = prm[lat.P_NOMINAL + 2 * axle], prm[lat.P_NOMINAL + 2 * axle + 1]
+
+    def force(alpha, gamma):
+        f, _ = lateral_force(alpha, gamma, mu, fz, c_alpha, c_gamma, shape.slip_shape, shape.camber_shape, 0.05)
+        return f
+
+    h = 1e-6
+    for alpha, gamma in [(0.0, 0.0), (0.004, 0.05), (0.01, 0.14), (-0.01, -0.14), (0.02, 0.1), (-0.005, 0.2)]:
+        slope = (force(alpha + h, gamma) - force(alpha - h, gamma)) / (2.0 * h) / (mu * c_alpha)
+        got = lat._slope_ratio(prm, axle, mu, force(alpha, gamma), gamma)
+        assert got == pytest.approx(slope, abs=1e-4), (alpha, gamma)
+    # at a third of a wet road's grip the slope is well below the small-slip stiffness: what the data measure
+    assert lat._slope_ratio(prm, axle, 0.5, 0.17 * fz, 0.13) < 0.95
+
+
+def test_the_published_scale_is_the_banks_over_the_mean_slope_ratio_of_what_it_learned_from(settings, design):
+    """The faded mean of the learning cycles' slope ratios divides the bank's scale; its log, times
+    `saturation_uncertainty`, joins the published spread. Nothing learned: no correction. A new prior forgets it.
+    A force the law cannot produce (a NaN, or beyond the peak) corrects by at most 1 / MIN_SLOPE_RATIO."""
+    b = lat.STAGE.alone(settings, design)
+    st, prm = b.state, b.params
+    fz_f, fz_r = prm[lat.P_AXLE_LOAD], prm[lat.P_AXLE_LOAD + 1]
+    assert st[lat.ST_SLOPE_WEIGHT] == 0.0
+    for _ in range(300):  # a wet road's working point, k 0.5
+        lat._learn_slope_ratio(st, prm, 0.45, 0.15 * fz_f, 0.16 * fz_r, 0.13)
+        st[lat.ST_SMALL_SLIP_SCALE] = 0.45 / (st[lat.ST_SLOPE_SUM] / st[lat.ST_SLOPE_WEIGHT])
+    ratio = st[lat.ST_SLOPE_SUM] / st[lat.ST_SLOPE_WEIGHT]
+    expected = 0.5 * (
+        lat._slope_ratio(prm, 0, st[lat.ST_SMALL_SLIP_SCALE], 0.15 * fz_f, 0.13)
+        + lat._slope_ratio(prm, 1, st[lat.ST_SMALL_SLIP_SCALE], 0.16 * fz_r, 0.13)
+    )
+    assert ratio == pytest.approx(expected, rel=1e-3)  # the fixed point: the peak from the published scale
+    assert 0.85 < ratio < 0.97
+    out = _step(b, cnd.OUTPUTS.vector({"run": 0.0}, strict=False))  # the bank idle: its prior's centre, 1.0
+    assert out[lat.OUT_TYRE_SLOPE_RATIO] == pytest.approx(ratio)
+    assert out[lat.OUT_TYRE_SCALE] == pytest.approx(1.0 / ratio)
+    np.testing.assert_allclose(
+        out[lat.OUT_TYRE_STIFFNESS : lat.OUT_TYRE_STIFFNESS + 4], prm[lat.P_NOMINAL : lat.P_NOMINAL + 4] / ratio
+    )
+    sd = np.hypot(prm[lat.P_PRIOR_SD], prm[lat.P_SATURATION_UNCERTAINTY] * np.log(1.0 / ratio))
+    assert out[lat.OUT_TYRE_LOG_SD] == pytest.approx(sd)
+    lat.set_prior(st, prm, design.tb_scale, 1.0, restored=False)
+    assert st[lat.ST_SLOPE_WEIGHT] == 0.0 and st[lat.ST_SMALL_SLIP_SCALE] == 0.0
+    for force in (float("nan"), 5.0 * fz_f):
+        lat._learn_slope_ratio(st, prm, 1.0, force, force, 0.0)
+    assert st[lat.ST_SLOPE_SUM] / st[lat.ST_SLOPE_WEIGHT] >= lat.MIN_SLOPE_RATIO

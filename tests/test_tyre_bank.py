@@ -259,18 +259,29 @@ def test_the_published_torque_near_the_grip_limit_is_within_15_percent_of_the_pe
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("seed", "perturbation"), [(None, "stiffness=1.3"), (None, "stiffness=1.0")])
+@pytest.mark.parametrize(
+    ("seed", "perturbation"),
+    [
+        (None, "stiffness=1.3"),
+        (None, "stiffness=1.0"),
+        (None, "stiffness=0.7"),
+        (None, "mu_scale=0.85"),
+        (5, "stiffness=0.7"),
+    ],
+)
 def test_a_changed_road_is_followed_within_10_s(seed, perturbation):
     """`mu_drop`: the road's friction falls from 0.9 to 0.5 at 20 s, and the small-slip stiffness with it.
     Learning waits for the tyres' linear range, and these riders stay beyond it for most of the seconds after
     the drop, so the new road's evidence comes in short bursts. With the old road's hypotheses held up to 50
     nats ahead (the floor before `evidence_floor`), the ×1.3 ride followed after 13.96 s (issue #12: within 10 s).
-    The ×0.7 and +50 kg rides are the next test's."""
+    The ×0.7 and μ 0.85 rides (and ×0.7 on noise seed 5) read the wet road 9-14 % soft before the slope correction
+    (the data measure the tyres' slope at 25-35 % of the grip; `lateral._slope_ratio`) and never came within 10 %;
+    now 5.8, 9.0 and 3.3 s. The +50 kg ride is the next test's."""
     from ptw_rt.eval.evaluate import evaluate_ride
     from ptw_rt.eval.matrix import MU_DROP_AT, learning_times
     from ptw_rt.sim.ride import parse_perturbations, simulate
 
-    ev = evaluate_ride(simulate("mu_drop", seed=seed, perturbation=parse_perturbations([perturbation])))
+    ev = evaluate_ride(simulate("mu_drop", seed=seed, perturbation=parse_perturbations(perturbation.split())))
     for name, times in learning_times(ev, MU_DROP_AT).items():
         assert times["time_s"] is not None and times["time_s"] <= 10.0, name
 
@@ -283,7 +294,8 @@ def test_a_changed_road_is_followed_within_10_s(seed, perturbation):
 def test_after_a_changed_road_the_stiffness_moves_to_it_and_is_never_valid_while_off(seed, perturbation):
     """`mu_drop` where the new road's evidence comes only from leans near the learning range's end (25-35 % of the
     new road's grip): there the data show the tyres' slope where they work, 9-16 % below the small-slip one
-    (docs/estimator.md, "A hypothesis that joins the window"). The estimate moves to the new road within 10 s (to
+    (docs/estimator.md, "A hypothesis that joins the window"; the published scale corrects most of it since
+    "The tyres' slope at their working point"). The estimate moves to the new road within 10 s (to
     within 25 %: the +50 kg ride adds the payload the sensors cannot see), and no frame is VALID more than 15 % off.
     Seed 37 x1.3 was VALID 24.7 % off for 2.8 s while the hypotheses that joined the window were ruled out by
     their own filters' convergence."""

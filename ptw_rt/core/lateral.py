@@ -4,7 +4,10 @@ One fusion filter (`ptw_rt.core.kalman`) per hypothesis of the tyres' scale, and
 may stray further from the tyre model; the published states (torque, steer rate, v_y, forces) are the latter's
 posterior mixture, so the tyres they run on are the learned ones, and the
 scale estimate with its spread and the filters' consistency (NIS) are this stage's outputs (the supervisor
-makes the stiffness valid bits from them). Learning is allowed only from sound inputs (this cycle's
+makes the stiffness valid bits from them). The published scale is the small-slip posterior's divided by the mean
+slope ratio of the cycles it learned from (`_learn_slope_ratio`: the linear filters measure the tyres' slope where
+they work, below the small-slip stiffness once they use a share of a wet road's grip; docs/estimator.md, "The
+tyres' slope at their working point"). Learning is allowed only from sound inputs (this cycle's
 measurements new and in range), after the filters settled, above `min_learning_speed` and below
 `max_learning_roll` (the tyres' linear range); the bank itself also requires excitation.
 
@@ -43,11 +46,26 @@ STATE = Layout(
     ay_mean=1,  # m/s^2: running mean of a_y (`bias_window`): what a constant steer error biases the slip by
     ay_square=1,  # m^2/s^4: running mean of a_y^2: the slip signal the tyres are learned from
     tyre_evidence=1,  # s of learning cycles behind the tyre estimate, faded with the bank's memories
+    slope_sum=1,  # the tyres' slope over their small-slip stiffness, summed over the learning cycles (faded) ...
+    slope_weight=1,  # ... and their (faded) count: the mean slope ratio the bank's scale is corrected by
+    small_slip_scale=1,  # last cycle's published scale (the peak force of this cycle's slope ratio; 0: none yet)
     y=kf.N_Y,  # scratch: this cycle's measurements
     scratch=tb.SCRATCH_SIZE,  # the bank's scratch
     bank_out=tb.OUT_SIZE,  # the bank's outputs
 )
-ST_BANK, ST_RUN_TIME, ST_AY_MEAN, ST_AY_SQUARE, ST_TYRE_EVIDENCE, ST_Y, ST_SCRATCH, ST_BANK_OUT = STATE.offsets
+(
+    ST_BANK,
+    ST_RUN_TIME,
+    ST_AY_MEAN,
+    ST_AY_SQUARE,
+    ST_TYRE_EVIDENCE,
+    ST_SLOPE_SUM,
+    ST_SLOPE_WEIGHT,
+    ST_SMALL_SLIP_SCALE,
+    ST_Y,
+    ST_SCRATCH,
+    ST_BANK_OUT,
+) = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -64,6 +82,11 @@ PARAMS = Layout(
     prior_sd=1,  # sd of log k of the prior around the start value
     restored_sd=1,  # ... around a restored (persisted) value
     nominal=4,  # N/rad: the nominal file's [C_af, C_gf, C_ar, C_gr]
+    axle_load=2,  # N: the file's static [front, rear] normal loads
+    slip_shape=1,  # C_a of the tyres' saturating law (`_slope_ratio`)
+    camber_shape=1,  # C_g
+    saturation_friction=1,  # peak force per load of tyres at the file's stiffness (k = 1)
+    saturation_uncertainty=1,  # share of the slope correction's log taken as its own sd
     bank=tb.PARAM_SIZE,  # the bank's parameters (ptw_rt.core.tyre_bank B_*)
 )
 (
@@ -80,6 +103,11 @@ PARAMS = Layout(
     P_PRIOR_SD,
     P_RESTORED_SD,
     P_NOMINAL,
+    P_AXLE_LOAD,
+    P_SLIP_SHAPE,
+    P_CAMBER_SHAPE,
+    P_SATURATION_FRICTION,
+    P_SATURATION_UNCERTAINTY,
     P_BANK,
 ) = PARAMS.offsets
 
@@ -88,8 +116,8 @@ OUTPUTS = Layout(
     z=kf.N_Z,  # the corrected state [phi, delta, v_y, r, phi_dot, delta_dot, F_yf, F_yr, tau] (0 while not running)
     run_time=1,  # s since the model-based observers last (re)started
     diverged=1,  # 1: the filter was reset this cycle
-    tyre_scale=1,  # k: the tyres' small-slip stiffness over the nominal file's
-    tyre_log_sd=1,  # sd of log k (posterior spread)
+    tyre_scale=1,  # k: the tyres' small-slip stiffness over the nominal file's (the bank's over the slope ratio)
+    tyre_log_sd=1,  # sd of log k (posterior spread, and the slope correction's own uncertainty)
     tyre_nis=1,  # the most likely hypothesis' windowed mean normalised innovation (consistency; expected kf.N_Y)
     tyre_nis_fast=1,  # ... over the short window
     tyre_learning=1,  # 1: this cycle's evidence moved the estimate
@@ -97,6 +125,7 @@ OUTPUTS = Layout(
     tyre_operating_scale=1,  # k the mixture runs on (evidence at any lean: near saturation, the secant slope)
     tyre_change=1,  # nats: the bank's change statistic (a neighbouring tyre explains the last cycles better)
     tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
+    tyre_slope_ratio=1,  # the mean slope ratio of the cycles learned from (1: small slip; `_slope_ratio`)
 )
 (
     OUT_Z,
@@ -111,6 +140,7 @@ OUTPUTS = Layout(
     OUT_TYRE_OPERATING_SCALE,
     OUT_TYRE_CHANGE,
     OUT_TYRE_STIFFNESS,
+    OUT_TYRE_SLOPE_RATIO,
 ) = OUTPUTS.offsets
 
 TABLES = (
@@ -174,6 +204,13 @@ def build_params(settings, design) -> np.ndarray:
         prior_sd=tun.prior_sd,
         restored_sd=tun.restored_sd,
         nominal=np.array(settings.vehicle.nominal_stiffness()),
+        axle_load=np.array(
+            [settings.vehicle.front_load, settings.vehicle.mass * settings.vehicle.g - settings.vehicle.front_load]
+        ),
+        slip_shape=tun.saturation_slip_shape,
+        camber_shape=tun.saturation_camber_shape,
+        saturation_friction=tun.saturation_friction,
+        saturation_uncertainty=tun.saturation_uncertainty,
         bank=tb.bank_params(count, float(design.sample_time), tun),
     )
 
@@ -288,8 +325,15 @@ def lateral_stage(
         bank_out[tb.OUT_MAP_NIS] = kf.N_Y
         bank_out[tb.OUT_MAP_NIS_FAST] = kf.N_Y
         bank_out[tb.OUT_OPERATING_SCALE] = bank_out[tb.OUT_SCALE]
-    out[OUT_TYRE_SCALE] = bank_out[tb.OUT_SCALE]
-    out[OUT_TYRE_LOG_SD] = bank_out[tb.OUT_LOG_SD]
+    if run and bank_out[tb.OUT_LEARNING] != 0.0:
+        _learn_slope_ratio(st, prm, bank_out[tb.OUT_SCALE], kf_out[kf.FYF], kf_out[kf.FYR], kf_out[kf.PHI])
+    ratio = st[ST_SLOPE_SUM] / st[ST_SLOPE_WEIGHT] if st[ST_SLOPE_WEIGHT] > 0.0 else 1.0
+    scale = bank_out[tb.OUT_SCALE] / ratio
+    st[ST_SMALL_SLIP_SCALE] = scale
+    correction_sd = prm[P_SATURATION_UNCERTAINTY] * math.log(1.0 / ratio)
+    out[OUT_TYRE_SCALE] = scale
+    out[OUT_TYRE_LOG_SD] = math.sqrt(bank_out[tb.OUT_LOG_SD] ** 2 + correction_sd * correction_sd)
+    out[OUT_TYRE_SLOPE_RATIO] = ratio
     out[OUT_TYRE_NIS] = bank_out[tb.OUT_MAP_NIS]
     out[OUT_TYRE_NIS_FAST] = bank_out[tb.OUT_MAP_NIS_FAST]
     out[OUT_TYRE_LEARNING] = bank_out[tb.OUT_LEARNING]
@@ -297,7 +341,7 @@ def lateral_stage(
     out[OUT_TYRE_OPERATING_SCALE] = bank_out[tb.OUT_OPERATING_SCALE]
     out[OUT_TYRE_CHANGE] = bank_out[tb.OUT_CHANGE]
     for k in range(4):
-        out[OUT_TYRE_STIFFNESS + k] = bank_out[tb.OUT_SCALE] * prm[P_NOMINAL + k]
+        out[OUT_TYRE_STIFFNESS + k] = scale * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
 
@@ -331,6 +375,48 @@ def _count_evidence(st: np.ndarray, prm: np.ndarray, learning: bool) -> float:
     return st[ST_TYRE_EVIDENCE]
 
 
+MAX_UTILISATION = 0.95  # of the peak force: the slope ratio's model holds below the peak
+MAX_SLIP_PART = 1.4  # rad, atan(B_a alpha) within (-pi/2, pi/2): a force and lean the law cannot pair stay finite
+MIN_SLOPE_RATIO = 0.6  # no cycle corrects the scale by more than 1 / this (a force estimate far off the model's)
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _slope_ratio(prm: np.ndarray, axle: int, scale: float, force: float, camber: float) -> float:
+    """dF/dalpha over the small-slip stiffness at this cycle's working point, for the tyre law
+    F = D sin(C_a atan(B_a alpha) + C_g atan(B_g gamma)) with D = k mu_file F_z, B_a = C_alpha / (C_a F_z) and
+    B_g = C_gamma / (C_g F_z) (the file's stiffness: a scale k that is the road's grip scales D and the slope, not
+    B). The sine's argument is arcsin(F / D); the camber's part of it is C_g atan(B_g gamma) (gamma: the lean,
+    the sign convention of the Sharp model's forces), the rest is the slip's. The slope over its small-slip value
+    is cos(arg) / (1 + (B_a alpha)^2)."""
+    fz = prm[P_AXLE_LOAD + axle]
+    peak = max(scale, 1e-3) * prm[P_SATURATION_FRICTION] * fz
+    utilisation = max(min(force / peak, MAX_UTILISATION), -MAX_UTILISATION)
+    arg = math.asin(utilisation)
+    c_g = prm[P_CAMBER_SHAPE]
+    b_g = prm[P_NOMINAL + 2 * axle + 1] / (c_g * fz)
+    slip_part = (arg - c_g * math.atan(b_g * camber)) / prm[P_SLIP_SHAPE]
+    slip_part = max(min(slip_part, MAX_SLIP_PART), -MAX_SLIP_PART)
+    b_alpha = math.tan(slip_part)
+    return math.cos(arg) / (1.0 + b_alpha * b_alpha)
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _learn_slope_ratio(
+    st: np.ndarray, prm: np.ndarray, bank_scale: float, force_front: float, force_rear: float, camber: float
+) -> None:
+    """Adds this learning cycle's slope ratio (both axles' mean) to the faded mean the bank's scale is divided by.
+    The data measure the tyres' slope at their working point (the bank's linear filters fit dF/d(slip)); the
+    published scale is the small-slip one. The peak is last cycle's published scale's (the correction's fixed
+    point); the mean fades with the bank's learning memory, so a new road's cycles replace an old road's."""
+    scale = st[ST_SMALL_SLIP_SCALE] if st[ST_SMALL_SLIP_SCALE] > 0.0 else bank_scale
+    ratio = 0.5 * (_slope_ratio(prm, 0, scale, force_front, camber) + _slope_ratio(prm, 1, scale, force_rear, camber))
+    if not ratio >= MIN_SLOPE_RATIO:  # also a NaN force
+        ratio = MIN_SLOPE_RATIO
+    forget = prm[P_BANK + tb.B_LEARN_FORGET]
+    st[ST_SLOPE_SUM] = st[ST_SLOPE_SUM] * forget + ratio
+    st[ST_SLOPE_WEIGHT] = st[ST_SLOPE_WEIGHT] * forget + 1.0
+
+
 def _bank(st: np.ndarray) -> np.ndarray:
     return st[ST_BANK : ST_BANK + tb.state_size(MAX_HYPOTHESES)]
 
@@ -353,6 +439,9 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scales: np.ndarray, centre: float
     """Start the tyre estimate from `centre` x nominal (a persisted value, or a test's wrong start)."""
     sd = prm[P_RESTORED_SD] if restored else prm[P_PRIOR_SD]
     tb.set_prior(_bank(st), _bank_params(prm), scales, centre, sd)
+    st[ST_SLOPE_SUM] = 0.0  # a new start: no working point learned from yet
+    st[ST_SLOPE_WEIGHT] = 0.0
+    st[ST_SMALL_SLIP_SCALE] = 0.0
     st[ST_BANK_OUT + tb.OUT_SCALE] = 0.0  # the bank has not run on this prior: report its centre until it does
 
 

@@ -13,7 +13,8 @@ learned fades into the prior spread around the current estimate if nothing confi
 is a Gaussian in log k around the start value (nominal, a persisted value, or a wrong start in tests).
 
 Two posteriors share the filters and their innovations. The **small-slip** one takes evidence only in the
-tyres' linear range (`learn`): it is the published stiffness. The **operating** one takes it at any lean
+tyres' linear range (`learn`): over the slope ratio of its working points (ptw_rt.core.lateral), it is the
+published stiffness. The **operating** one takes it at any lean
 (`track`): near saturation the tyres act softer than their small-slip slope, and the published torque,
 forces and v_y must come from the tyres the vehicle runs on now (`radius_accel`'s long deep corners: torque
 error 17-23 % of the peak with the small-slip weights, 12-14 % with the operating ones).
