@@ -204,9 +204,7 @@ def build_params(settings, design) -> np.ndarray:
         prior_sd=tun.prior_sd,
         restored_sd=tun.restored_sd,
         nominal=np.array(settings.vehicle.nominal_stiffness()),
-        axle_load=np.array(
-            [settings.vehicle.front_load, settings.vehicle.mass * settings.vehicle.g - settings.vehicle.front_load]
-        ),
+        axle_load=np.array([settings.vehicle.front_load, settings.vehicle.rear_load]),
         slip_shape=tun.saturation_slip_shape,
         camber_shape=tun.saturation_camber_shape,
         saturation_friction=tun.saturation_friction,

@@ -115,6 +115,11 @@ class VehicleParameters:
         return self.m_f + self.m_r
 
     @property
+    def rear_load(self) -> float:
+        """Static normal load on the rear tyre [N]: the weight less the front's."""
+        return self.mass * self.g - self.front_load
+
+    @property
     def mfk(self) -> float:
         return self.m_f * self.k
 

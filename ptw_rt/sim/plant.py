@@ -171,7 +171,7 @@ def pack(cfg: PlantConfig) -> tuple[np.ndarray, np.ndarray]:
     v[P_CAR] = p.c_ar
     v[P_CGR] = p.c_gr
     v[P_FZF] = p.front_load
-    v[P_FZR] = p.mass * p.g - p.front_load
+    v[P_FZR] = p.rear_load
     v[P_SHAPE_A] = ty.slip_shape
     v[P_SHAPE_G] = ty.camber_shape
     v[P_MIN_MU] = ty.min_mu
