@@ -68,11 +68,11 @@ def _run(
     on_cycle=None,
 ):
     """The bank over Y: (scale, log sd, NIS) per cycle, the last outputs, the published states per cycle;
-    `published`: the publishing filters' tables (default: the design's); `tuning`: instead of the bank's;
+    `published`: the publishing filters' gain table (default: the design's); `tuning`: instead of the bank's;
     `on_cycle(k, state)`: called after each cycle's step with the bank's state."""
     s, bank_tuning, grid, t = bank
     tuning = bank_tuning if tuning is None else tuning
-    pub = published if published is not None else (t["tb_Phi_pub"], t["tb_K_pub"], t["tb_Gd_pub"])
+    gain_pub = published if published is not None else t["tb_K_pub"]
     if half_width is not None:
         tuning = replace(tuning, running_half_width=half_width)
     H = len(t["tb_scale"])
@@ -88,7 +88,7 @@ def _run(
     for k, y in enumerate(Y):
         tb.bank_step(
             st, out, scratch, prm, y, U, y[4], True, True, learn, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
-            t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"], *pub,
+            t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"], gain_pub,
         )  # fmt: skip
         trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS], out[tb.OUT_CHANGE]
         states[k] = out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]
@@ -213,7 +213,7 @@ def test_a_nan_measurement_poisons_nothing_for_good(bank):
     for y in Y:
         tb.bank_step(
             st, out, scratch, prm, y, U, y[4], True, True, True, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
-            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"], t["tb_Phi_pub"], t["tb_K_pub"], t["tb_Gd_pub"],
+            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"], t["tb_K_pub"],
         )  # fmt: skip
         if not np.isfinite(out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]).all():
             tb.restart_filters(st, prm)  # what the lateral stage does
@@ -228,8 +228,8 @@ def test_the_published_states_come_from_the_publishing_filters_and_the_evidence_
     what the bank learns comes from the evidence filters alone, so the publishing design cannot move it."""
     s, tuning, grid, t = bank
     Y = _ride(s, 1.3, 20.0, excite=True, seed=5)
-    own = (t["tb_Phi"], t["tb_K"], t["tb_Gd"])
-    freer = (t["tb_Phi_pub"], t["tb_K_pub"], t["tb_Gd_pub"])
+    own = t["tb_K"]
+    freer = t["tb_K_pub"]
     assert s.estimator.kalman.published_force_noise != (1.0, 1.0)  # the file's publishing filters are freer
     trace_own, _, z_own = _run(bank, Y, published=own)
     trace_freer, _, z_freer = _run(bank, Y, published=freer)

@@ -99,22 +99,8 @@ def kalman_step_at(
     hypothesis's grid one after the other). Why offsets instead of slices, and inlined: every array view made
     or passed at run time costs an atomic reference count increment and decrement (~6 ns each), which were
     a third of the bank's time. Every matrix entry is `schedule.lerp`'s, the same arithmetic bit for bit."""
-    if st[s0 + INIT] == 0.0:
-        for a in range(N_Z):
-            st[s0 + a] = 0.0
-        st[s0 + PHI] = roll_init
-        st[s0 + DELTA] = y[0]
-        st[s0 + R] = y[1]
-        st[s0 + PHI_DOT] = y[2]
-        st[s0 + INIT] = 1.0
-    for a in range(N_Z):
-        out[a] = st[s0 + a]
-    for r in range(N_Y):
-        e = y[r]
-        for c in range(N_Z):
-            e -= C[r, c] * st[s0 + c]
-        for a in range(N_Z):
-            out[a] += lerp(K, j, w, a, r) * e
+    _start(st, s0, y, roll_init)
+    _correct(st, s0, out, y, j, w, K, C)
     nonlinear_correction(d, out, u, nl)
     for a in range(N_Z):
         acc = 0.0
@@ -123,3 +109,77 @@ def kalman_step_at(
         for b in range(N_D):
             acc += lerp(Gd, j, w, a, b) * d[b]
         st[s0 + a] = acc
+
+
+@njit(cache=True, inline="always")
+def kalman_pair_step_at(
+    st: np.ndarray,
+    s0: int,
+    s1: int,
+    out0: np.ndarray,
+    out1: np.ndarray,
+    y: np.ndarray,
+    u: float,
+    roll_init: float,
+    j: int,
+    w: float,
+    Phi: np.ndarray,
+    K0: np.ndarray,
+    K1: np.ndarray,
+    C: np.ndarray,
+    Gd: np.ndarray,
+    nl: np.ndarray,
+    d0: np.ndarray,
+    d1: np.ndarray,
+) -> None:
+    """`kalman_step_at` on two filters of the same vehicle that differ only in their gain (the tyre bank's
+    evidence filter, gain K0, state at s0, and its publishing filter, K1 at s1): Phi and Gd depend on the
+    vehicle alone, so each of their entries is interpolated once for both. The tables are most of the bank's
+    memory traffic, read afresh each cycle; each filter's arithmetic is `kalman_step_at`'s, bit for bit."""
+    _start(st, s0, y, roll_init)
+    _start(st, s1, y, roll_init)
+    _correct(st, s0, out0, y, j, w, K0, C)
+    _correct(st, s1, out1, y, j, w, K1, C)
+    nonlinear_correction(d0, out0, u, nl)
+    nonlinear_correction(d1, out1, u, nl)
+    for a in range(N_Z):
+        acc0 = 0.0
+        acc1 = 0.0
+        for b in range(N_Z):
+            p = lerp(Phi, j, w, a, b)
+            acc0 += p * out0[b]
+            acc1 += p * out1[b]
+        for b in range(N_D):
+            g = lerp(Gd, j, w, a, b)
+            acc0 += g * d0[b]
+            acc1 += g * d1[b]
+        st[s0 + a] = acc0
+        st[s1 + a] = acc1
+
+
+@njit(cache=True, inline="always")
+def _start(st: np.ndarray, s0: int, y: np.ndarray, roll_init: float) -> None:
+    """A filter that is not initialised starts from the measured steer, yaw and roll rates and `roll_init`."""
+    if st[s0 + INIT] == 0.0:
+        for a in range(N_Z):
+            st[s0 + a] = 0.0
+        st[s0 + PHI] = roll_init
+        st[s0 + DELTA] = y[0]
+        st[s0 + R] = y[1]
+        st[s0 + PHI_DOT] = y[2]
+        st[s0 + INIT] = 1.0
+
+
+@njit(cache=True, inline="always")
+def _correct(
+    st: np.ndarray, s0: int, out: np.ndarray, y: np.ndarray, j: int, w: float, K: np.ndarray, C: np.ndarray
+) -> None:
+    """out = z + K (y - C z) for the filter whose state z is at s0."""
+    for a in range(N_Z):
+        out[a] = st[s0 + a]
+    for r in range(N_Y):
+        e = y[r]
+        for c in range(N_Z):
+            e -= C[r, c] * st[s0 + c]
+        for a in range(N_Z):
+            out[a] += lerp(K, j, w, a, r) * e

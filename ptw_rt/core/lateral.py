@@ -153,9 +153,7 @@ TABLES = (
     ("kf_nonlinear", 1),
     ("tb_Sinv", 3),
     ("tb_logdet", 3),
-    ("tb_Phi_pub", 3),
     ("tb_K_pub", 3),
-    ("tb_Gd_pub", 3),
 )
 (
     T_GRID,
@@ -167,9 +165,7 @@ TABLES = (
     T_NONLINEAR,
     T_SINV,
     T_LOGDET,
-    T_PHI_PUB,
     T_K_PUB,
-    T_GD_PUB,
 ) = range(len(TABLES))
 
 
@@ -290,9 +286,7 @@ def lateral_stage(
             v1(tables, tindex, t0 + T_NONLINEAR),
             v3(tables, tindex, t0 + T_SINV),
             v3(tables, tindex, t0 + T_LOGDET),
-            v3(tables, tindex, t0 + T_PHI_PUB),
             v3(tables, tindex, t0 + T_K_PUB),
-            v3(tables, tindex, t0 + T_GD_PUB),
         )
         for k in range(kf.N_Z):
             kf_out[k] = bank_out[tb.OUT_Z + k]

@@ -162,13 +162,16 @@ OUT_CHANGE = OUT_SCALE + 10  # nats: how much better a neighbouring tyre explain
 OUT_SIZE = OUT_SCALE + 11
 
 MAX_COUNT = 32  # hypotheses the scratch is laid out for (the design file has `len(tb_scale)`)
-# scratch needed by `bank_step`: innovation (N_Y), one filter's output (N_Z), correction forces (N_D), then per
+# scratch needed by `bank_step`: innovation (N_Y), the evidence and the publishing filters' outputs (N_Z) and
+# correction forces (N_D), then per
 # hypothesis its log k and its weights in the two posteriors (each computed once per cycle: exp and log are
 # most of the bank's cost beside the filters)
 SC_E = 0
 SC_ZH = SC_E + kf.N_Y
 SC_D = SC_ZH + kf.N_Z
-SC_LOG_SCALE = SC_D + kf.N_D
+SC_ZH_PUB = SC_D + kf.N_D  # the same two for the publishing filter
+SC_D_PUB = SC_ZH_PUB + kf.N_Z
+SC_LOG_SCALE = SC_D_PUB + kf.N_D
 SC_WEIGHT = SC_LOG_SCALE + MAX_COUNT
 SC_WEIGHT_OP = SC_WEIGHT + MAX_COUNT
 SC_NIS = SC_WEIGHT_OP + MAX_COUNT  # this cycle's NIS and log det S of each hypothesis
@@ -392,9 +395,7 @@ def bank_step(
     nl: np.ndarray,
     Sinv: np.ndarray,
     logdet: np.ndarray,
-    Phi_pub: np.ndarray,
     K_pub: np.ndarray,
-    Gd_pub: np.ndarray,
 ) -> None:
     """One cycle: each filter's innovation, evidence, the two posteriors, then every running filter's step, mixed.
 
@@ -410,6 +411,8 @@ def bank_step(
     e = scratch[SC_E : SC_E + kf.N_Y]
     zh = scratch[SC_ZH : SC_ZH + kf.N_Z]
     d = scratch[SC_D : SC_D + kf.N_D]
+    zp = scratch[SC_ZH_PUB : SC_ZH_PUB + kf.N_Z]
+    dp = scratch[SC_D_PUB : SC_D_PUB + kf.N_D]
     log_scale = scratch[SC_LOG_SCALE : SC_LOG_SCALE + H]
     weight = scratch[SC_WEIGHT : SC_WEIGHT + H]
     weight_op = scratch[SC_WEIGHT_OP : SC_WEIGHT_OP + H]
@@ -514,12 +517,13 @@ def bank_step(
     p0 = _published0(H)
     for h in range(lo, hi + 1):
         # filter h's state block and its tables' rows around u (hypothesis h's grid starts at row h G)
-        kf.kalman_step_at(st, h * BLOCK, zh, y, u, roll_init, h * G + i, w, Phi, K, C, Gd, nl, d)
+        kf.kalman_pair_step_at(
+            st, h * BLOCK, p0 + h * BLOCK, zh, zp, y, u, roll_init, h * G + i, w, Phi, K, K_pub, C, Gd, nl, d, dp
+        )
         out[OUT_EVIDENCE_ROLL] += weight_op[h] * zh[kf.PHI]
         out[OUT_EVIDENCE_TORQUE] += weight_op[h] * zh[kf.TAU]
-        kf.kalman_step_at(st, p0 + h * BLOCK, zh, y, u, roll_init, h * G + i, w, Phi_pub, K_pub, C, Gd_pub, nl, d)
         for k in range(kf.N_Z):
-            out[OUT_Z + k] += weight_op[h] * zh[k]
+            out[OUT_Z + k] += weight_op[h] * zp[k]
     out[OUT_SCALE] = math.exp(mean_log)
     out[OUT_LOG_SD] = math.sqrt(var_log)
     out[OUT_MAP_WEIGHT] = weight[map_h]

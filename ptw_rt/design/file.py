@@ -19,7 +19,7 @@ import numpy as np
 from ptw_rt.errors import UserFacingError
 from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, short_text
 
-FORMAT_VERSION = 9
+FORMAT_VERSION = 10
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -81,9 +81,9 @@ class DesignData:
     tb_Gd: np.ndarray  # (H*G, 9, 4)
     tb_Sinv: np.ndarray  # (H*G, 5, 5) inverse innovation covariance
     tb_logdet: np.ndarray  # (H*G, 1, 1) log det of the innovation covariance
-    tb_Phi_pub: np.ndarray  # (H*G, 9, 9) the publishing filter's (tyre forces freer of the tyre model)
+    # the publishing filter's gain (tyre forces freer of the tyre model); its Phi and Gd are tb_Phi and tb_Gd,
+    # which depend on the vehicle alone
     tb_K_pub: np.ndarray  # (H*G, 9, 5)
-    tb_Gd_pub: np.ndarray  # (H*G, 9, 4)
     # UIHOSMO on the real sensors (issue #16; design.uio_sensors, runtime core.uio_sensors), reduced state as uh_*
     us_outputs: np.ndarray  # (m,) int, core.uio_sensors M_* codes of the reconstruction outputs
     us_observed: np.ndarray  # (p,) int, M_* codes of the pre-observer's outputs (us_outputs first)
@@ -173,9 +173,7 @@ _SHAPES: dict[str, tuple] = {
     "tb_Gd": ("HG", 9, 4),
     "tb_Sinv": ("HG", 5, 5),
     "tb_logdet": ("HG", 1, 1),
-    "tb_Phi_pub": ("HG", 9, 9),
     "tb_K_pub": ("HG", 9, 5),
-    "tb_Gd_pub": ("HG", 9, 4),
     "us_outputs": ("m",),
     "us_observed": ("p",),
     "us_degrees": ("m",),

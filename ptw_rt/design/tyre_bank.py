@@ -16,7 +16,7 @@ file does not describe); the evidence keeps the model's tighter filters, which t
 Tables (H hypotheses, G grid speeds; hypothesis-major, so rows h*G .. h*G+G-1 are hypothesis h):
   tb_scale (H,), tb_Phi (H*G, 9, 9), tb_K (H*G, 9, 5), tb_Gd (H*G, 9, 4), tb_Sinv (H*G, 5, 5),
   tb_logdet (H*G, 1, 1) (log det S, as a 3-D table so it interpolates like the others),
-  tb_Phi_pub, tb_K_pub, tb_Gd_pub: the publishing filters'.
+  tb_K_pub: the publishing filters' gain (their Phi and Gd are tb_Phi and tb_Gd: the same vehicle).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def design_bank(
 ) -> dict[str, np.ndarray]:
     ks = scales(tuning)
     phi, gain, gd, sinv, logdet = [], [], [], [], []
-    phi_pub, gain_pub, gd_pub = [], [], []
+    gain_pub = []
     published = kalman_tuning.published_force_noise
     for k in ks:
         pk = p.scaled(stiffness=float(k))
@@ -54,10 +54,10 @@ def design_bank(
             gd.append(Gd)
             sinv.append(np.linalg.inv(S))
             logdet.append(np.linalg.slogdet(S)[1])
-            Phi, K, Gd, _ = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning, published)
-            phi_pub.append(Phi)
+            Phi_pub, K, Gd_pub, _ = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning, published)
+            # the runtime steps both filters with one Phi and Gd (core.kalman.kalman_pair_step_at)
+            assert np.array_equal(Phi_pub, Phi) and np.array_equal(Gd_pub, Gd), "noise changed the model"
             gain_pub.append(K)
-            gd_pub.append(Gd)
     return {
         "tb_scale": ks,
         "tb_Phi": np.array(phi),
@@ -65,9 +65,7 @@ def design_bank(
         "tb_Gd": np.array(gd),
         "tb_Sinv": np.array(sinv),
         "tb_logdet": np.array(logdet).reshape(-1, 1, 1),
-        "tb_Phi_pub": np.array(phi_pub),
         "tb_K_pub": np.array(gain_pub),
-        "tb_Gd_pub": np.array(gd_pub),
     }
 
 
@@ -78,7 +76,7 @@ def bank_spectral_radii(data, grid: np.ndarray, between: int) -> tuple[float, fl
     G = len(grid)
     C = data.kf_C
     at_grid, inside = 0.0, 0.0
-    for Phi_all, K_all in ((data.tb_Phi, data.tb_K), (data.tb_Phi_pub, data.tb_K_pub)):
+    for Phi_all, K_all in ((data.tb_Phi, data.tb_K), (data.tb_Phi, data.tb_K_pub)):
         for h in range(len(data.tb_scale)):
             Phi, K = Phi_all[h * G : (h + 1) * G], K_all[h * G : (h + 1) * G]
             for i in range(G):
