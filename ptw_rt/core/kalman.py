@@ -72,43 +72,17 @@ def kalman_step(
     nl: np.ndarray,
     d: np.ndarray,
 ) -> None:
-    """One cycle; `out` (>= N_Z floats) receives the corrected state. `roll_init` seeds phi on (re)start."""
+    """One cycle of one filter; `out` (>= N_Z floats) receives the corrected state. `roll_init` seeds phi on
+    (re)start. The runtime steps its filters in pairs (`kalman_pair_step_at`, the tyre bank); this runs the same
+    code on the filter and a copy of it (tests, offline use: it allocates)."""
     i, w = grid_position(grid, u)
-    kalman_step_at(state, 0, out, y, u, roll_init, i, w, Phi, K, C, Gd, nl, d)
-
-
-@njit(cache=True, inline="always")
-def kalman_step_at(
-    st: np.ndarray,
-    s0: int,
-    out: np.ndarray,
-    y: np.ndarray,
-    u: float,
-    roll_init: float,
-    j: int,
-    w: float,
-    Phi: np.ndarray,
-    K: np.ndarray,
-    C: np.ndarray,
-    Gd: np.ndarray,
-    nl: np.ndarray,
-    d: np.ndarray,
-) -> None:
-    """`kalman_step` on the filter whose state is ``st[s0 : s0 + STATE_SIZE]``, between table rows j and j + 1
-    (its grid position, `grid_position`, found once by the caller; the tyre bank's tables hold every
-    hypothesis's grid one after the other). Why offsets instead of slices, and inlined: every array view made
-    or passed at run time costs an atomic reference count increment and decrement (~6 ns each), which were
-    a third of the bank's time. Every matrix entry is `schedule.lerp`'s, the same arithmetic bit for bit."""
-    _start(st, s0, y, roll_init)
-    _correct(st, s0, out, y, j, w, K, C)
-    nonlinear_correction(d, out, u, nl)
-    for a in range(N_Z):
-        acc = 0.0
-        for b in range(N_Z):
-            acc += lerp(Phi, j, w, a, b) * out[b]
-        for b in range(N_D):
-            acc += lerp(Gd, j, w, a, b) * d[b]
-        st[s0 + a] = acc
+    pair = np.empty(2 * STATE_SIZE)
+    pair[:STATE_SIZE] = state
+    pair[STATE_SIZE:] = state
+    kalman_pair_step_at(
+        pair, 0, STATE_SIZE, out, np.empty(N_Z), y, u, roll_init, i, w, Phi, K, K, C, Gd, nl, d, np.empty(N_D)
+    )
+    state[:] = pair[:STATE_SIZE]
 
 
 @njit(cache=True, inline="always")
@@ -132,10 +106,14 @@ def kalman_pair_step_at(
     d0: np.ndarray,
     d1: np.ndarray,
 ) -> None:
-    """`kalman_step_at` on two filters of the same vehicle that differ only in their gain (the tyre bank's
-    evidence filter, gain K0, state at s0, and its publishing filter, K1 at s1): Phi and Gd depend on the
-    vehicle alone, so each of their entries is interpolated once for both. The tables are most of the bank's
-    memory traffic, read afresh each cycle; each filter's arithmetic is `kalman_step_at`'s, bit for bit."""
+    """One cycle of two filters of the same vehicle that differ only in their gain (the tyre bank's evidence
+    filter, gain K0, state at ``st[s0 : s0 + STATE_SIZE]``, and its publishing filter, K1 at s1), between table rows
+    j and j + 1 (their grid position, `grid_position`, found once by the caller; the tyre bank's tables hold every
+    hypothesis's grid one after the other). `out0`/`out1` receive the corrected states. Phi and Gd depend on the
+    vehicle alone, so each of their entries is interpolated once for both: the tables are most of the bank's
+    memory traffic, read afresh each cycle. Every matrix entry is `schedule.lerp`'s. Why offsets instead of
+    slices, and inlined: every array view made or passed at run time costs an atomic reference count increment
+    and decrement (~6 ns each), which were a third of the bank's time."""
     _start(st, s0, y, roll_init)
     _start(st, s1, y, roll_init)
     _correct(st, s0, out0, y, j, w, K0, C)

@@ -455,7 +455,7 @@ def bank_step(
         ld_now[h] = 0.0
         if not (observe and st[h * BLOCK + kf.INIT] != 0.0):
             continue
-        z0 = h * BLOCK  # its z: indexed, not sliced (a view costs atomic reference counting, kf.kalman_step_at)
+        z0 = h * BLOCK  # its z: indexed, not sliced (a view costs atomic reference counting, kf.kalman_pair_step_at)
         j = h * G + i
         for r in range(kf.N_Y):
             acc = y[r]
