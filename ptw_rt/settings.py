@@ -123,6 +123,10 @@ TYRE_BANK_SCHEMA = Section(
         # left `slalom_30` x0.7 VALID for 18-45 % of its second half on four of five noise seeds
         "alarm_hold": (Number("s", ge=0), 0.5),
         "settle_time": (Number("s", ge=0), 2.0),
+        # ... within this of where it settled (sd of log k): 0.025, half the valid spread (2026-11-27): with the
+        # whole spread, a posterior that a still-converging yaw-gyro bias had collapsed 28 % off was VALID while it
+        # walked back 3.7 % in 0.8 s (random routes set 4, docs/estimator.md, "The steer at the IMU's instant")
+        "settle_log_sd": (Number("", gt=0, le=0.2), 0.025),
         # ... of which this much learning: a hypothesis nothing has tested since it became the most likely one (the
         # lean beyond the linear range right after a road change moved the bank half-way) has not settled
         "settle_learning_time": (Number("s", ge=0), 0.5),
@@ -417,6 +421,7 @@ class TyreBankTuning:
     valid_max_nis_fast: float
     alarm_hold: float
     settle_time: float
+    settle_log_sd: float
     settle_learning_time: float
     min_learning_speed: float
     max_learning_bias_share: float

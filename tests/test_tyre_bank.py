@@ -174,17 +174,23 @@ def test_operating_tyres_follow_where_the_small_slip_stiffness_may_not_learn(ban
 
 def test_sub_grid_peak_interpolates_a_narrow_posterior():
     """A log-posterior quadratic in log k peaking between hypotheses: the parabola through the most likely one
-    and its neighbours finds the peak; a broad one, or one at the window's edge, keeps the posterior mean."""
+    and its neighbours finds the peak, and its curvature the spread (the weights' spread is the grid's half step
+    there); a broad one, or one at the window's edge, keeps the posterior's mean and variance."""
     log_scale = np.log(1.15 ** np.arange(-4, 5))
-    peak, sd = math.log(1.15**0.3), 0.02
+    peak, sd = math.log(1.15**0.5), 0.02
     logl = -0.5 * ((log_scale - peak) / sd) ** 2
     m = int(np.argmax(logl))
-    assert tb._sub_grid_peak(logl, log_scale, 0, 8, m, 99.0) == pytest.approx(peak, abs=1e-12)
+    grid_half_step_var = (0.5 * math.log(1.15)) ** 2
+    got_peak, got_var = tb._sub_grid_peak(logl, log_scale, 0, 8, m, 99.0, grid_half_step_var)
+    assert got_peak == pytest.approx(peak, abs=1e-12)
+    assert math.sqrt(got_var) == pytest.approx(sd, rel=1e-9)
+    # never wider than the weights say
+    assert tb._sub_grid_peak(logl, log_scale, 0, 8, m, 99.0, 1e-8)[1] == 1e-8
     broad = -0.5 * ((log_scale - peak) / 0.5) ** 2
-    assert tb._sub_grid_peak(broad, log_scale, 0, 8, int(np.argmax(broad)), 99.0) == 99.0
-    assert tb._sub_grid_peak(logl, log_scale, m, 8, m, 99.0) == 99.0  # no lower neighbour in the window
+    assert tb._sub_grid_peak(broad, log_scale, 0, 8, int(np.argmax(broad)), 99.0, 7.0) == (99.0, 7.0)
+    assert tb._sub_grid_peak(logl, log_scale, m, 8, m, 99.0, 7.0) == (99.0, 7.0)  # no lower neighbour in the window
     flat = np.zeros(9)
-    assert tb._sub_grid_peak(flat, log_scale, 0, 8, 4, 99.0) == 99.0  # not concave
+    assert tb._sub_grid_peak(flat, log_scale, 0, 8, 4, 99.0, 7.0) == (99.0, 7.0)  # not concave
 
 
 def test_tyres_between_hypotheses_are_not_snapped_to_one(bank):

@@ -33,7 +33,7 @@ from numba import njit
 from ptw_rt.core import attitude as att
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import speed as spd
-from ptw_rt.core.layout import INPUT_FAULTS, REASON_GPS_LOST, REASON_SPEED_LOW, S_IMU_AGE
+from ptw_rt.core.layout import INPUT_FAULTS, REASON_GPS_LOST, REASON_SPEED_LOW, S_IMU_AGE, S_STEER_AGE
 from ptw_rt.core.params import lever_arm_coefficients
 from ptw_rt.core.stage import Layout, Stage
 
@@ -107,6 +107,7 @@ OUTPUTS = Layout(
     roll_last=1,  # rad: the published roll of the last cycle
     diverged=1,  # 1: the roll was implausible and replaced (an observer-reset event for the supervisor)
     steer_zero_shift=1,  # rad: the learned steer-encoder zero error, already removed from `steer`
+    steer_lead=1,  # s: how much newer the steer reading is than the IMU's (`steer_lead`)
 )
 (
     OUT_DEROLL,
@@ -124,6 +125,7 @@ OUTPUTS = Layout(
     OUT_ROLL_LAST,
     OUT_DIVERGED,
     OUT_STEER_ZERO_SHIFT,
+    OUT_STEER_LEAD,
 ) = OUTPUTS.offsets
 
 
@@ -222,6 +224,20 @@ def derivative_filter(z: np.ndarray, k: int, y: float, omega: float, dt: float) 
     return z[k + 1]
 
 
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def steer_lead(imu_age: float, steer_age: float, dt: float) -> float:
+    """s by which the steer reading is newer than the IMU's, from their frames' arrival times (within one cycle).
+
+    The encoder and the IMU sample at their own phases, so a cycle's steer and rates describe instants up to a
+    cycle apart. The lateral filters take the IMU's instant for all of their measurements and carry the steer back
+    to it (`ptw_rt.core.lateral`): on the simulator's phases (the steer 4.6 ms newer) the steer read as if 4.6 ms
+    early made the tyres read 4.7 % soft in town (`docs/estimator.md`, "The steer at the IMU's instant")."""
+    lead = imu_age - steer_age
+    if not math.isfinite(lead):
+        return 0.0
+    return min(max(lead, -dt), dt)
+
+
 @njit(cache=True)
 def conditioning_stage(
     sample: np.ndarray,
@@ -315,6 +331,7 @@ def conditioning_stage(
     out[OUT_ROLL] = roll
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
     out[OUT_STEER_ZERO_SHIFT] = st[ST_STEER_ZERO_SHIFT]
+    out[OUT_STEER_LEAD] = steer_lead(sample[S_IMU_AGE], sample[S_STEER_AGE], dt)
 
 
 def restart(st: np.ndarray) -> None:

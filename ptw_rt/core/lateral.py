@@ -241,7 +241,10 @@ def lateral_stage(
         roll_prev = cond[cnd.OUT_DEROLL]
         u = speed[spd.OUT_U]
         y_kf = st[ST_Y : ST_Y + kf.N_Y]
-        y_kf[0] = delta
+        # every measurement at the IMU's instant: the steer, read up to a cycle later or earlier, is carried back
+        # with last cycle's steer rate (conditioning.steer_lead)
+        shift = cond[cnd.OUT_STEER_LEAD] * kf_out[kf.DELTA_DOT]
+        y_kf[0] = delta - shift if math.isfinite(shift) else delta
         y_kf[1] = r_ground
         y_kf[2] = p_rate
         accel_trusted = inputs[inp.OUT_ACCEL_TRUSTED] != 0.0

@@ -138,7 +138,8 @@ PARAMS = Layout(
     tyre_valid_max_nis=1,  # ... the most likely filter's windowed NIS within this ...
     tyre_valid_max_nis_fast=1,  # ... and its short-window NIS has not exceeded this
     tyre_hold=1,  # s: for this long after it did
-    tyre_settle=1,  # s the estimate must have stayed within tyre_valid_log_sd of where it settled ...
+    tyre_settle=1,  # s the estimate must have stayed within tyre_settle_log_sd of where it settled ...
+    tyre_settle_log_sd=1,  # (log k)
     tyre_settle_learning=1,  # ... of which this long learning
     tyre_min_evidence=1,  # s of learning cycles (the lateral stage's faded count) the estimate must rest on
     tyre_untested=1,  # s the estimate stays valid after the last cycle that tested it
@@ -174,6 +175,7 @@ PARAMS = Layout(
     P_TYRE_VALID_MAX_NIS_FAST,
     P_TYRE_HOLD,
     P_TYRE_SETTLE,
+    P_TYRE_SETTLE_LOG_SD,
     P_TYRE_SETTLE_LEARNING,
     P_TYRE_MIN_EVIDENCE,
     P_TYRE_UNTESTED,
@@ -231,6 +233,7 @@ def build_params(settings, design) -> np.ndarray:
         tyre_valid_max_nis_fast=est.tyre_bank.valid_max_nis_fast,
         tyre_hold=est.tyre_bank.alarm_hold,
         tyre_settle=est.tyre_bank.settle_time,
+        tyre_settle_log_sd=est.tyre_bank.settle_log_sd,
         tyre_settle_learning=est.tyre_bank.settle_learning_time,
         tyre_min_evidence=est.tyre_bank.valid_min_evidence,
         tyre_untested=est.tyre_bank.valid_untested_time,
@@ -494,7 +497,7 @@ def supervisor_stage(
     ):
         st[ST_TYRE_ALARM_UNTIL] = t + prm[P_TYRE_HOLD]
     concentrated = lateral[lat.OUT_TYRE_LOG_SD] <= prm[P_TYRE_VALID_LOG_SD]
-    # settled means the estimate held, and held while new evidence came in. Held: within its own claimed spread (the
+    # settled means the estimate held, and held while new evidence came in. Held: within half its valid spread (the
     # most likely hypothesis alone is a 15 % grid cell, and a road change moved k by 8 % inside one while it stayed
     # VALID, 48 % off). Tested: time without learning (a lean beyond the tyres' linear range) tests nothing; on
     # wall time alone, a bank that a road change had moved half-way in 0.5 s and that then rode 2 s of deeper lean
@@ -511,7 +514,7 @@ def supervisor_stage(
     )
     if tested:
         st[ST_TYRE_TESTED_AT] = t
-    if not concentrated or not drift <= prm[P_TYRE_VALID_LOG_SD]:
+    if not concentrated or not drift <= prm[P_TYRE_SETTLE_LOG_SD]:
         st[ST_TYRE_STABLE_SINCE] = t
         st[ST_TYRE_STABLE_SCALE] = scale
         st[ST_TYRE_TESTED_FOR] = 0.0

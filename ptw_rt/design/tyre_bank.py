@@ -55,8 +55,10 @@ def design_bank(
             sinv.append(np.linalg.inv(S))
             logdet.append(np.linalg.slogdet(S)[1])
             Phi_pub, K, Gd_pub, _ = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning, published)
-            # the runtime steps both filters with one Phi and Gd (core.kalman.kalman_pair_step_at)
-            assert np.array_equal(Phi_pub, Phi) and np.array_equal(Gd_pub, Gd), "noise changed the model"
+            # the runtime steps both filters with one Phi and Gd (core.kalman.kalman_pair_step_at): a raise, not an
+            # assert, so that `python -O` cannot write a design file whose publishing filters run the wrong model
+            if not (np.array_equal(Phi_pub, Phi) and np.array_equal(Gd_pub, Gd)):
+                raise ValueError(f"the publishing filter's model differs from the evidence filter's at k={k}, u={u}")
             gain_pub.append(K)
     return {
         "tb_scale": ks,

@@ -87,6 +87,7 @@ def tracker_params(codec: FrameCodec, stale_after_periods: float) -> tuple[np.nd
         for signal, slot in SIGNAL_SLOTS[name]:
             p[tr.TP_SLOT + base + layout.index[signal]] = slot
     p[tr.TP_IMU] = INPUT_NAMES.index("IMU_Rates")
+    p[tr.TP_STEER] = INPUT_NAMES.index("Steer_Encoder")
     return p, tuple(layouts)
 
 

@@ -33,6 +33,7 @@ from ptw_rt.core.layout import (
     S_IMU_AGE,
     S_INPUT_REASONS,
     S_STALE,
+    S_STEER_AGE,
     S_SUSPECT,
     S_TIME,
     SAMPLE_SIZE,
@@ -41,7 +42,7 @@ from ptw_rt.core.stage import Layout
 
 N_INPUTS = 4  # IMU_Rates, IMU_Accel, Steer_Encoder, GPS_Velocity (``ptw_rt.edge.inputs.SIGNAL_SLOTS`` order)
 MAX_SIGNALS = 8  # signals per input message the tables hold
-MAX_IMU_AGE = 0.05  # s: the Sample's IMU age is bounded (beyond a few cycles the input is stale)
+MAX_INPUT_AGE = 0.05  # s: the Sample's IMU and steer ages are bounded (beyond a few cycles the input is stale)
 NO_COUNTER = -1.0  # TR_COUNTER_LAST before the first counter after construction or a restart
 
 STATE = Layout(
@@ -96,6 +97,7 @@ PARAMS = Layout(
     hi=N_INPUTS * MAX_SIGNALS,
     slot=N_INPUTS * MAX_SIGNALS,  # Sample index signal j is copied to, -1: none
     imu=1,  # the input whose age is the Sample's IMU age
+    steer=1,  # the input whose age is the Sample's steer age
     frozen_after=N_INPUTS,  # repeated payloads after which a frame is not fresh (0: never, a value may hold)
     crc_pos=N_INPUTS,  # position of its CRC among its signals, -1: none (it changes with the counter)
 )
@@ -110,6 +112,7 @@ PARAMS = Layout(
     TP_HI,
     TP_SLOT,
     TP_IMU,
+    TP_STEER,
     TP_FROZEN_AFTER,
     TP_CRC_POS,
 ) = PARAMS.offsets
@@ -223,7 +226,9 @@ def track_fill(state: np.ndarray, params: np.ndarray, sample: np.ndarray, now: f
     state[row + S_STALE] = stale_bits
     state[row + S_INPUT_REASONS] = state[TR_REASONS]
     age = now - state[TR_LAST_VALID + int(params[TP_IMU])]
-    state[row + S_IMU_AGE] = min(max(age, 0.0), MAX_IMU_AGE)
+    state[row + S_IMU_AGE] = min(max(age, 0.0), MAX_INPUT_AGE)
+    age = now - state[TR_LAST_VALID + int(params[TP_STEER])]
+    state[row + S_STEER_AGE] = min(max(age, 0.0), MAX_INPUT_AGE)
     state[row + S_SUSPECT] = state[TR_SUSPECT]
     for i in range(SAMPLE_SIZE):
         sample[i] = state[row + i]
