@@ -497,11 +497,13 @@ def supervisor_stage(
     ):
         st[ST_TYRE_ALARM_UNTIL] = t + prm[P_TYRE_HOLD]
     concentrated = lateral[lat.OUT_TYRE_LOG_SD] <= prm[P_TYRE_VALID_LOG_SD]
-    # settled means the estimate held, and held while new evidence came in. Held: within half its valid spread (the
-    # most likely hypothesis alone is a 15 % grid cell, and a road change moved k by 8 % inside one while it stayed
-    # VALID, 48 % off). Tested: time without learning (a lean beyond the tyres' linear range) tests nothing; on
-    # wall time alone, a bank that a road change had moved half-way in 0.5 s and that then rode 2 s of deeper lean
-    # was VALID 22.6 % off (`mu_drop` seed 5, docs/estimator.md, "Settled means held, and tested")
+    # settled means the estimate held, and held while new evidence came in. Held: within tyre_settle_log_sd of where
+    # it settled, half the valid spread by default (the most likely hypothesis alone is a 15 % grid cell, and a road
+    # change moved k by 8 % inside one while it stayed VALID, 48 % off; within the whole valid spread a collapsed
+    # posterior walked back 3.7 % while VALID). Tested: time without learning (a lean beyond the tyres' linear
+    # range) tests nothing; on wall time alone, a bank that a road change had moved half-way in 0.5 s and that then
+    # rode 2 s of deeper lean was VALID 22.6 % off (`mu_drop` seed 5, docs/estimator.md, "Settled means held, and
+    # tested")
     scale = lateral[lat.OUT_TYRE_SCALE]
     settled_at = st[ST_TYRE_STABLE_SCALE]
     drift = abs(math.log(scale / settled_at)) if scale > 0.0 and settled_at > 0.0 else math.inf
