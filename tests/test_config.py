@@ -73,6 +73,9 @@ def test_default_config_loads(settings):
         ({"sensors": {"steer_counts_per_rev": 1}}, "steer_counts_per_rev: must be >= 64"),
         ({"vehicle__front_tyre__cornering_stiffness": 1e-300}, "cornering_stiffness: must be >= 10"),
         ({"sensors": {"steer_counts_per_rev": 256}}, "steer_zero_count (512.0) must be below steer_counts_per_rev"),
+        ({"vehicle__added_mass": 400}, "vehicle.added_mass: must be <= 300"),
+        ({"vehicle__added_mass": "heavy"}, "vehicle.added_mass: expected a number"),
+        ({"vehicle__added_mass": -140, "vehicle__rear_frame__mass": 150}, "added_mass: -140 kg leaves too little of"),
     ],
 )
 def test_config_errors_name_the_key(tmp_path, changes, message):
@@ -81,6 +84,18 @@ def test_config_errors_name_the_key(tmp_path, changes, message):
         load_settings(path)
     assert message in str(err.value)
     assert str(path) in str(err.value)
+
+
+def test_added_mass_is_the_simulators_payload(tmp_path, settings):
+    """A rider 50 kg heavier set in the file is the vehicle the simulator rides with `added_mass=50`: one lever rule
+    (`VehicleParameters.with_added_mass`); without the key the file is as before (it is optional, 0)."""
+    from ptw_rt.sim.ride import parse_perturbations, perturbed_vehicle
+
+    heavy = load_settings(write(tmp_path, mutated(vehicle__added_mass=50))).vehicle
+    assert heavy == perturbed_vehicle(settings.vehicle, parse_perturbations(["added_mass=50"]))
+    assert heavy.mass == pytest.approx(settings.vehicle.mass + 50)
+    assert heavy.front_load > settings.vehicle.front_load and heavy.rear_load > settings.vehicle.rear_load
+    assert load_settings(write(tmp_path, mutated(vehicle__added_mass=DELETE))).vehicle == settings.vehicle
 
 
 def test_missing_file(tmp_path):

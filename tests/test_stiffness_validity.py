@@ -146,3 +146,33 @@ ROAD_CHANGES = [
 @pytest.mark.parametrize("seed, perturb", ROAD_CHANGES)
 def test_a_road_that_changes_where_nothing_tests_the_tyres_is_not_published_valid(seed, perturb):
     _assert_valid_within_20_percent("mu_drop", seed, perturb.split())
+
+
+@pytest.mark.slow
+def test_a_payload_set_in_the_file_is_what_the_learned_tyres_rest_on(tmp_path):
+    """No sensor sees the mass: the data fix the tyres per unit mass, so a rider 50 kg heavier than the file reads as
+    tyres 10-14 % softer (docs/estimator.md, "The payload"). The same ride with the payload set in the file
+    (`vehicle.added_mass`, then `ptw-rt design`) reads the plant's own tyres."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from ptw_rt.paths import DEFAULT_CONFIG
+
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["vehicle"]["added_mass"] = 50.0
+    config, design = tmp_path / "heavier.yaml", tmp_path / "heavier.design.npz"
+    config.write_text(yaml.safe_dump(doc))
+    cmd = [sys.executable, "-m", "ptw_rt.cli", "design", "--config", str(config), "--out", str(design)]
+    subprocess.run(cmd, check=True, capture_output=True)
+    ride = simulate("slalom_30", perturbation=parse_perturbations(["added_mass=50"]))
+
+    def signed_error_while_valid(evaluation) -> float:
+        E = evaluation.estimates
+        valid = evaluation.mask & ((E[:, L.E_VALID].astype(int) & L.V_CORNERING) != 0)
+        assert valid.sum() > 500
+        return float(np.mean(E[valid, L.E_C_ALPHA_FRONT] / evaluation.truth["c_alpha_front"][valid] - 1.0))
+
+    assert signed_error_while_valid(evaluate_ride(ride)) < -0.08  # the file's rider: the payload reads as softer tyres
+    assert abs(signed_error_while_valid(evaluate_ride(ride, config, design))) < 0.05

@@ -71,8 +71,13 @@ VEHICLE_SCHEMA = Section(
                 "relaxation_length": Number("m", gt=0, lt=2),
             }
         ),
-    }
+    },
+    # the rider and luggage this scooter carries beyond the rider rear_frame.mass includes (negative: lighter):
+    # the learned tyres' N/rad rest on the mass, which no sensor sees (docs/estimator.md, "The payload")
+    optional={"added_mass": (Number("kg", ge=-150, le=300), 0.0)},
 )
+# the rear frame keeps at least this share of its mass when a negative added_mass takes some away
+MIN_REAR_FRAME_SHARE = 0.2
 
 
 @dataclass(frozen=True)
@@ -166,6 +171,13 @@ class VehicleParameters:
         """(C_af, C_gf, C_ar, C_gr): the order of seed 001's parameter vector Theta."""
         return (self.c_af, self.c_gf, self.c_ar, self.c_gr)
 
+    def with_added_mass(self, dm: float) -> VehicleParameters:
+        """The vehicle with a point mass dm [kg] at the rear-frame CoM (a heavier or, dm < 0, lighter rider, or
+        luggage): the model's reference point is that CoM, so the inertias about it stay, and the front tyre takes
+        its lever-rule share of the weight. What the simulator's `added_mass` and the file's `added_mass` both do."""
+        front_share = self.l_r / (self.l_f + self.l_r)
+        return replace(self, m_r=self.m_r + dm, front_load=self.front_load + dm * self.g * front_share)
+
     def scaled(self, mass_inertia: float = 1.0, stiffness: float = 1.0) -> VehicleParameters:
         """A perturbed vehicle: masses and inertias (and load) times one factor, tyre stiffness times another."""
         mi = mass_inertia
@@ -223,6 +235,13 @@ def vehicle_from_mapping(raw: Any, source: str = "<vehicle>", prefix: str = "veh
         c_gr=v["rear_tyre"]["camber_stiffness"],
         sigma_r=v["rear_tyre"]["relaxation_length"],
     )
+    dm = v["added_mass"]
+    if dm:
+        if params.m_r + dm <= MIN_REAR_FRAME_SHARE * params.m_r:
+            raise ConfigError(
+                f"{source}: {prefix}.added_mass: {dm:g} kg leaves too little of rear_frame.mass ({params.m_r:g} kg)"
+            )
+        params = params.with_added_mass(dm)
     check_physical(params, f"{source}: {prefix}")
     return params
 
