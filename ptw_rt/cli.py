@@ -17,6 +17,10 @@ from ptw_rt import _deferred_imports
 from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
 
+DESIGN_FILE_HELP = (
+    f"design file (default: the config's own, NAME.design.npz beside it, if there is one; else {DEFAULT_DESIGN})"
+)
+
 # optional extras of pyproject.toml: top-level module -> extra that installs it
 EXTRA_OF_MODULE = {
     "scipy": "design",
@@ -192,7 +196,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Computes gains, transformations and their exact 100 Hz discretisation over the speed grid.",
     )
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML")
-    p.add_argument("--out", type=Path, default=None, help=f"design file to write (default: {DEFAULT_DESIGN})")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="design file to write (default: the config's own, NAME.design.npz beside it)",
+    )
     p.add_argument("--check", action="store_true", help="verify stability of the design instead of writing it")
     p.add_argument("--design-file", type=Path, default=None, help="with --check: check this file, not a fresh design")
     p.add_argument("--json", action="store_true", help="with --check: print one JSON object")
@@ -256,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
     p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE", help="plant perturbation")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML")
-    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
+    p.add_argument("--design-file", type=Path, default=None, help=DESIGN_FILE_HELP)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument(
         "--markdown",
@@ -278,7 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML (default: %(default)s)"
     )
-    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
+    p.add_argument("--design-file", type=Path, default=None, help=DESIGN_FILE_HELP)
     p.set_defaults(handler=_report)
 
     p = sub.add_parser(
@@ -286,7 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the daemon: 100 Hz loop on a CAN bus, estimates published as DBC frames",
     )
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="config YAML (vehicle, estimator, runtime)")
-    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
+    p.add_argument("--design-file", type=Path, default=None, help=DESIGN_FILE_HELP)
     p.add_argument("--interface", default=None, help="override runtime.bus.interface")
     p.add_argument("--channel", default=None, help="override runtime.bus.channel")
     p.add_argument("--state-file", type=_file_name, default=None, help="override runtime.state_file")
@@ -316,7 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML (default: %(default)s)"
     )
-    p.add_argument("--design-file", type=Path, default=None, help=f"design file (default: {DEFAULT_DESIGN})")
+    p.add_argument("--design-file", type=Path, default=None, help=DESIGN_FILE_HELP)
     p.add_argument("--jobs", type=_worker_count, default=None, help="parallel processes (default: all cores)")
     p.add_argument(
         "--max-gap",

@@ -78,6 +78,31 @@ def test_stale_design_is_refused(tmp_path, settings):
         load_design(DEFAULT_DESIGN, other.config_hash, changed)
 
 
+def test_a_vehicle_file_of_ones_own_gets_its_own_design_file(tmp_path, settings):
+    """A rider's `added_mass` in a copy of the file: `ptw-rt design --config rider.yaml` writes rider.design.npz beside
+    it (it wrote the shipped design, which the shipped file then no longer matched), and every command reads that
+    one by default. Before it exists, the refusal names it, not the shipped file."""
+    from ptw_rt.edge.cycle import build_runner
+
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["vehicle"]["added_mass"] = 30.0
+    rider = tmp_path / "rider.yaml"
+    rider.write_text(yaml.safe_dump(doc))
+    with pytest.raises(DesignFileError, match=f"--config {rider} --out {tmp_path / 'rider.design.npz'}$"):
+        build_runner(rider)
+    shipped = DEFAULT_DESIGN.read_bytes()
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt.cli", "design", "--config", str(rider)], capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert DEFAULT_DESIGN.read_bytes() == shipped
+    assert build_runner(rider).estimator.design.config_hash == load_settings(rider).config_hash
+    # a copy of the shipped file with no design of its own reads the shipped design (the hash says it fits)
+    copy = tmp_path / "copy.yaml"
+    copy.write_text(DEFAULT_CONFIG.read_text())
+    assert build_runner(copy).estimator.design.config_hash == settings.config_hash
+
+
 def test_design_file_errors(tmp_path):
     with pytest.raises(DesignFileError, match="not found"):
         load_design(tmp_path / "missing.npz")
@@ -283,7 +308,8 @@ def _vehicle_scaled_at_random(seed: int, spread: float) -> dict:
 
     def walk(node):
         if isinstance(node, dict):
-            return {k: (v if k in ("name", "gravity") else walk(v)) for k, v in node.items()}
+            # added_mass (0, and newer than the sweep) draws nothing: the vehicles stay the ones the sweep found
+            return {k: (v if k in ("name", "gravity", "added_mass") else walk(v)) for k, v in node.items()}
         if isinstance(node, (int, float)) and not isinstance(node, bool):
             return node * rng.uniform(1 - spread, 1 + spread)
         return node

@@ -17,7 +17,7 @@ from ptw_rt.design.uihosmo import NEVER_DETECTABLE, design_grid
 from ptw_rt.errors import EXIT_USER, UserFacingError, output_error
 from ptw_rt.model.sharp import lpv_model
 from ptw_rt.output import emit
-from ptw_rt.paths import DEFAULT_DESIGN
+from ptw_rt.paths import design_file_for, own_design_file
 from ptw_rt.settings import Settings, load_settings
 from ptw_rt.untrusted import check_replaceable
 
@@ -268,7 +268,7 @@ def format_check(result: dict[str, Any]) -> str:
 def run_design(args) -> int:
     settings = load_settings(args.config)
     if args.check:
-        path = args.design_file or (DEFAULT_DESIGN if args.out is None else args.out)
+        path = args.design_file or (design_file_for(args.config) if args.out is None else args.out)
         if Path(path).exists():
             try:
                 data = load_design_for(settings, path, args.config)
@@ -283,7 +283,7 @@ def run_design(args) -> int:
         result["design_source"] = source
         emit(result, args.json, f"Design check of {source}\n" + format_check(result))
         return 0 if result["stable"] else 1
-    out = args.out or DEFAULT_DESIGN
+    out = args.out or own_design_file(args.config)
     if Path(out).resolve() == Path(args.config).resolve():
         raise UserFacingError(f"--out {out} is the configuration it is designed from: name the design file")
     try:

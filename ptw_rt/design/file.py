@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.errors import UserFacingError
+from ptw_rt.paths import DEFAULT_DESIGN, own_design_file
 from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, short_text
 
 FORMAT_VERSION = 10
@@ -344,7 +345,11 @@ def load_design(
     no pickles; every table's full shape, the grid, the sample time (the config's, when given) and the index
     fields checked (`_check_contents`)."""
     path = Path(path)
-    hint = REGENERATE_HINT.format(config=config_path, path=path)
+    # the shipped design read for a file of one's own (it has none yet): its own is what to write, not the shipped
+    out = path
+    if config_path != "CONFIG" and path.resolve() == DEFAULT_DESIGN.resolve():
+        out = own_design_file(config_path)
+    hint = REGENERATE_HINT.format(config=config_path, path=out)
     try:
         raw = _read_members(path, hint)
     except DesignFileError as exc:

@@ -35,7 +35,7 @@ from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.edge.outputs import OutputEncoder
 from ptw_rt.io.candump import payload_rows
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
-from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
+from ptw_rt.paths import DEFAULT_DBC, design_file_for
 from ptw_rt.settings import Settings, load_settings
 
 Frame = tuple[int, bytes]
@@ -146,7 +146,7 @@ def build_runner(
 ) -> CycleRunner:
     """Load and check config, design file and DBC (clear errors), return a ready runner."""
     settings = settings or load_settings(config)
-    design = load_design_for(settings, design_file or DEFAULT_DESIGN, config)
+    design = load_design_for(settings, design_file or design_file_for(config), config)
     return CycleRunner(settings, Estimator(settings, design), FrameCodec(dbc))
 
 

@@ -87,7 +87,7 @@ from ptw_rt.io.state_file import (
     steer_zero_bounds,
     stiffness_bounds,
 )
-from ptw_rt.paths import DEFAULT_DBC, DEFAULT_DESIGN
+from ptw_rt.paths import DEFAULT_DBC, design_file_for
 from ptw_rt.service.logs import HealthSummary, RateLimitedLog, setup_logging
 from ptw_rt.service.realtime import apply_realtime, normal_scheduling, restore_scheduling, thread_scheduling
 from ptw_rt.service.sdnotify import SystemdNotifier, WatchdogGate
@@ -995,7 +995,7 @@ def run_daemon(args) -> int:
     """
     overrides = _overrides_from(args)
     settings = load_daemon_settings(args.config, overrides)
-    design = args.design_file or DEFAULT_DESIGN
+    design = args.design_file or design_file_for(args.config)
     if args.check_config:
         runner = _build(Path(args.config), design, DEFAULT_DBC, settings)
         bus, gps = settings.runtime.bus, settings.runtime.gps
