@@ -605,6 +605,42 @@ def test_invalid_reload_keeps_the_running_config(notify, tmp_path):
     assert daemon.cycles >= 140
 
 
+def test_a_reload_takes_the_design_of_a_rider_set_while_it_runs(monkeypatch, tmp_path):
+    """`ptw-rt run` on a copy of the shipped file (no design of its own: the shipped one is read); while it runs the
+    rider's mass is set in the file and its design written beside it (`ptw-rt design --config daemon.yaml`): the
+    reload builds on that design. The daemon kept the design path its start had resolved, and refused the reload."""
+    import argparse
+
+    import yaml
+
+    from ptw_rt.design.build import make_design
+
+    config = tmp_path / "daemon.yaml"
+    config.write_text(DEFAULT_CONFIG.read_text())
+    started: list[Daemon] = []
+    monkeypatch.setattr(Daemon, "run", lambda self, duration=None: started.append(self) or 0)
+    args = argparse.Namespace(
+        config=config,
+        design_file=None,
+        interface="virtual",
+        channel=_channel(),
+        state_file=tmp_path / "s.json",
+        duration=0.1,
+        check_config=False,
+    )
+    assert daemon_mod.run_daemon(args) == 0
+    daemon = started[0]
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["vehicle"]["added_mass"] = 40.0
+    config.write_text(yaml.safe_dump(doc))
+    rider = load_daemon_settings(config, {})
+    make_design(rider)[0].save(tmp_path / "daemon.design.npz")
+    daemon._prepare_reload()
+    prepared = daemon._prepared
+    assert prepared.error is None and prepared.runner is not None
+    assert prepared.runner.estimator.design.config_hash == rider.config_hash != daemon.settings.config_hash
+
+
 def test_reload_moves_to_another_bus(notify, tmp_path):
     """runtime.bus changed in the file: the bus is closed in the loop (no wait) and reopened on the new channel."""
     first, second = _channel(), _channel()

@@ -1016,7 +1016,9 @@ def run_daemon(args) -> int:
     except (AttributeError, ValueError, OSError) as exc:  # a stderr without a file descriptor (embedded use)
         log.debug("faulthandler not enabled: %s", exc)
     setup_logging(settings.runtime.log_level)
-    daemon = Daemon(settings, args.config, design, overrides=overrides)
+    # the design file named, or none: then each build (start, SIGHUP) reads the config's own if there is one by
+    # then (`paths.design_file_for`): a rider's mass set and designed while it runs is taken by a reload
+    daemon = Daemon(settings, args.config, args.design_file, overrides=overrides)
     previous: dict[int, Any] = {}
 
     def on_stop(signum, frame) -> None:
