@@ -42,7 +42,7 @@ from ptw_rt.core.layout import (
 from ptw_rt.errors import EXIT_UNAVAILABLE
 from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.io.state_file import load_state, save_state
-from ptw_rt.paths import DEFAULT_CONFIG
+from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
 from ptw_rt.service import daemon as daemon_mod
 from ptw_rt.service.daemon import BusUnavailableError, Daemon, OverrunRule, load_daemon_settings
 from ptw_rt.service.sdnotify import SystemdNotifier
@@ -856,7 +856,7 @@ def test_restart_cli_restores_from_the_state_file(tmp_path):
     """The README's promise end to end: ``ptw-rt run`` twice on the same state file, as systemd restarts it."""
     from ptw_rt.design.file import load_design
 
-    design = load_design(daemon_mod.DEFAULT_DESIGN)
+    design = load_design(DEFAULT_DESIGN)
     values = design.ad_theta_nominal + 0.3 * design.ad_theta_bound
     state = tmp_path / "state.json"
     save_state(state, [float(v) for v in values], design.config_hash)
