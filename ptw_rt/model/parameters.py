@@ -76,7 +76,7 @@ VEHICLE_SCHEMA = Section(
     # the learned tyres' N/rad rest on the mass, which no sensor sees (docs/estimator.md, "The payload")
     optional={"added_mass": (Number("kg", ge=-150, le=300), 0.0)},
 )
-# the rear frame keeps at least this share of its mass when a negative added_mass takes some away
+# the rear frame keeps at least this share of its mass when a negative added mass takes some away
 MIN_REAR_FRAME_SHARE = 0.2
 
 
@@ -174,7 +174,11 @@ class VehicleParameters:
     def with_added_mass(self, dm: float) -> VehicleParameters:
         """The vehicle with a point mass dm [kg] at the rear-frame CoM (a heavier or, dm < 0, lighter rider, or
         luggage): the model's reference point is that CoM, so the inertias about it stay, and the front tyre takes
-        its lever-rule share of the weight. What the simulator's `added_mass` and the file's `added_mass` both do."""
+        its lever-rule share of the weight. What the simulator's `added_mass` and the file's `added_mass` both do.
+        ValueError (the reason, for the caller's message) if it leaves the rear frame less than MIN_REAR_FRAME_SHARE
+        of its mass."""
+        if self.m_r + dm <= MIN_REAR_FRAME_SHARE * self.m_r:
+            raise ValueError(f"{dm:g} kg leaves too little of rear_frame.mass ({self.m_r:g} kg)")
         front_share = self.l_r / (self.l_f + self.l_r)
         return replace(self, m_r=self.m_r + dm, front_load=self.front_load + dm * self.g * front_share)
 
@@ -235,13 +239,11 @@ def vehicle_from_mapping(raw: Any, source: str = "<vehicle>", prefix: str = "veh
         c_gr=v["rear_tyre"]["camber_stiffness"],
         sigma_r=v["rear_tyre"]["relaxation_length"],
     )
-    dm = v["added_mass"]
-    if dm:
-        if params.m_r + dm <= MIN_REAR_FRAME_SHARE * params.m_r:
-            raise ConfigError(
-                f"{source}: {prefix}.added_mass: {dm:g} kg leaves too little of rear_frame.mass ({params.m_r:g} kg)"
-            )
-        params = params.with_added_mass(dm)
+    if v["added_mass"]:
+        try:
+            params = params.with_added_mass(v["added_mass"])
+        except ValueError as exc:
+            raise ConfigError(f"{source}: {prefix}.added_mass: {exc}") from None
     check_physical(params, f"{source}: {prefix}")
     return params
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ptw_rt.errors import UserFacingError
-from ptw_rt.model.parameters import MIN_REAR_FRAME_SHARE, VehicleParameters, load_vehicle
+from ptw_rt.model.parameters import VehicleParameters, load_vehicle
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.sim import loop
 from ptw_rt.sim.plant import NX, PSI, XPOS, YPOS, Longitudinal, LowSpeed, PlantConfig, U, effective_mass, pack
@@ -197,10 +197,10 @@ def perturbed_vehicle(p: VehicleParameters, pert: Perturbation) -> VehicleParame
         f, r = pert.front_stiffness, pert.rear_stiffness
         q = replace(q, c_af=q.c_af * f, c_gf=q.c_gf * f, c_ar=q.c_ar * r, c_gr=q.c_gr * r)
     if pert.added_mass:
-        dm = pert.added_mass
-        if q.m_r + dm <= MIN_REAR_FRAME_SHARE * q.m_r:
-            raise UserFacingError(f"added_mass {dm} kg leaves too little rear-frame mass ({q.m_r:.0f} kg)")
-        q = q.with_added_mass(dm)  # a point mass at the rear-frame CoM, as the file's `added_mass`
+        try:
+            q = q.with_added_mass(pert.added_mass)  # a point mass at the rear-frame CoM, as the file's `added_mass`
+        except ValueError as exc:
+            raise UserFacingError(f"added_mass {exc}") from None
     return q
 
 
