@@ -127,6 +127,12 @@ TYRE_BANK_SCHEMA = Section(
         # whole spread, a posterior that a still-converging yaw-gyro bias had collapsed 28 % off was VALID while it
         # walked back 3.7 % in 0.8 s (random routes set 4, docs/estimator.md, "The steer at the IMU's instant")
         "settle_log_sd": (Number("", gt=0, le=0.2), 0.025),
+        # ... where it settled follows the estimate with this time constant (0: it stays put), so a walk slower than
+        # settle_log_sd / settle_follow_time (0.5 %/s) is not a move: a posterior still converging over its 10 s of
+        # memory walked 1.06 -> 1.03 in 8 s on `slalom_30` noise seed 101 and restarted the settle time at every
+        # 2.5 %, VALID for 0.47 of the second half; fast moves (3.7 % in 0.8 s, 8 % in a road change) still restart
+        # it (2026-11-27, docs/estimator.md, "Settled means held, and tested")
+        "settle_follow_time": (Number("s", ge=0, le=600), 5.0),
         # ... of which this much learning: a hypothesis nothing has tested since it became the most likely one (the
         # lean beyond the linear range right after a road change moved the bank half-way) has not settled
         "settle_learning_time": (Number("s", ge=0), 0.5),
@@ -422,6 +428,7 @@ class TyreBankTuning:
     alarm_hold: float
     settle_time: float
     settle_log_sd: float
+    settle_follow_time: float
     settle_learning_time: float
     min_learning_speed: float
     max_learning_bias_share: float

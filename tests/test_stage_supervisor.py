@@ -320,6 +320,31 @@ def test_an_estimate_that_moves_beyond_its_spread_starts_settling_again(settings
     assert not any(after[: n - 3]) and after[-1] == bits
 
 
+def test_a_slow_walk_of_the_estimate_is_held_a_fast_one_starts_settling_again(settings, design):
+    """A posterior converging over its memory walks (`slalom_30` noise seed 101: 1.06 -> 1.03 in 8 s, and the settle
+    time restarted at every 2.5 %, VALID 0.47 of the second half). The settle point follows the estimate with
+    `settle_follow_time`: a walk at half of `tyre_settle_log_sd` per follow time lags it by half the spread and stays
+    VALID however far it goes; twice as fast lags it by twice the spread and restarts the settle time."""
+    tun = settings.estimator.tyre_bank
+    assert tun.settle_follow_time > 0.0
+    good = {"tyre_log_sd": 0.01, "tyre_nis": 4.0, "tyre_nis_fast": 4.0, "tyre_learning": 1.0, "tyre_evidence": 5.0}
+    bits = lay.V_CORNERING | lay.V_CAMBER
+
+    def walk(rate_per_s: float, seconds: float) -> list[int]:
+        b = sup.STAGE.alone(settings, design)
+        dt, settle = b.params[sup.P_DT], b.params[sup.P_TYRE_SETTLE]
+        n = int(round(settle / dt)) + 2
+        assert [_step(b, tyres={**good, "tyre_scale": 1.0})[2] & bits for _ in range(n)][-1] == bits
+        scales = [math.exp(rate_per_s * dt * (i + 1)) for i in range(int(round(seconds / dt)))]
+        return [_step(b, tyres={**good, "tyre_scale": k})[2] & bits for k in scales]
+
+    spread = tun.settle_log_sd
+    slow = walk(0.5 * spread / tun.settle_follow_time, 6.0 * tun.settle_follow_time)
+    assert all(v == bits for v in slow)  # it walked 3 x the spread, held throughout
+    fast = walk(2.0 * spread / tun.settle_follow_time, 6.0 * tun.settle_follow_time)
+    assert fast[0] == bits and not all(v == bits for v in fast)
+
+
 def _steady_turn(b, speed: float, lat_accel: float, steer_offset: float = 0.0, yaw_gyro_scale: float = 1.0) -> dict:
     """The conditioned signals of a steady turn on the file's tyres: yaw rate a_y / u, the balanced lean, and
     the steer angle the kinematics and the tyres' slip need (`tyre_slip_angles`), plus an encoder offset."""

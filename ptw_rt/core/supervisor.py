@@ -141,6 +141,7 @@ PARAMS = Layout(
     tyre_settle=1,  # s the estimate must have stayed within tyre_settle_log_sd of where it settled ...
     tyre_settle_log_sd=1,  # (log k)
     tyre_settle_learning=1,  # ... of which this long learning
+    tyre_settle_follow=1,  # share of the way the settle point moves to the estimate each cycle (0: it stays)
     tyre_min_evidence=1,  # s of learning cycles (the lateral stage's faded count) the estimate must rest on
     tyre_untested=1,  # s the estimate stays valid after the last cycle that tested it
     tyre_valid_max_change=1,  # nats: the bank's change statistic above this is an inconsistency, like the NIS's
@@ -177,6 +178,7 @@ PARAMS = Layout(
     P_TYRE_SETTLE,
     P_TYRE_SETTLE_LOG_SD,
     P_TYRE_SETTLE_LEARNING,
+    P_TYRE_SETTLE_FOLLOW,
     P_TYRE_MIN_EVIDENCE,
     P_TYRE_UNTESTED,
     P_TYRE_VALID_MAX_CHANGE,
@@ -235,6 +237,11 @@ def build_params(settings, design) -> np.ndarray:
         tyre_settle=est.tyre_bank.settle_time,
         tyre_settle_log_sd=est.tyre_bank.settle_log_sd,
         tyre_settle_learning=est.tyre_bank.settle_learning_time,
+        tyre_settle_follow=(
+            1.0 - math.exp(-float(design.sample_time) / est.tyre_bank.settle_follow_time)
+            if est.tyre_bank.settle_follow_time > 0.0
+            else 0.0
+        ),
         tyre_min_evidence=est.tyre_bank.valid_min_evidence,
         tyre_untested=est.tyre_bank.valid_untested_time,
         tyre_valid_max_change=est.tyre_bank.valid_max_change,
@@ -520,8 +527,12 @@ def supervisor_stage(
         st[ST_TYRE_STABLE_SINCE] = t
         st[ST_TYRE_STABLE_SCALE] = scale
         st[ST_TYRE_TESTED_FOR] = 0.0
-    elif tested:
-        st[ST_TYRE_TESTED_FOR] += prm[P_DT]
+    else:
+        # the settle point follows the estimate slowly: a posterior converging over its memory walks, and a walk
+        # slower than tyre_settle_log_sd per settle_follow_time is held, not moved (`settle_follow_time`)
+        st[ST_TYRE_STABLE_SCALE] = settled_at * math.exp(prm[P_TYRE_SETTLE_FOLLOW] * math.log(scale / settled_at))
+        if tested:
+            st[ST_TYRE_TESTED_FOR] += prm[P_DT]
     if (
         run
         and run_time >= prm[P_CONVERGE_TIME]
