@@ -513,7 +513,9 @@ def supervisor_stage(
     # tested")
     scale = lateral[lat.OUT_TYRE_SCALE]
     settled_at = st[ST_TYRE_STABLE_SCALE]
-    drift = abs(math.log(scale / settled_at)) if scale > 0.0 and settled_at > 0.0 else math.inf
+    # log of how far the estimate moved from where it settled (signed: the settle point follows it below)
+    moved = math.log(scale / settled_at) if scale > 0.0 and settled_at > 0.0 else math.inf
+    drift = abs(moved)
     # learning tests the estimate only on data the model explains: settled while learning at a 2 s NIS of 10-12,
     # then consistent in a slow corner that taught it nothing, it was VALID 24.5 % off (random set 41, `urban`)
     tested = (
@@ -530,7 +532,7 @@ def supervisor_stage(
     else:
         # the settle point follows the estimate slowly: a posterior converging over its memory walks, and a walk
         # slower than tyre_settle_log_sd per settle_follow_time is held, not moved (`settle_follow_time`)
-        st[ST_TYRE_STABLE_SCALE] = settled_at * math.exp(prm[P_TYRE_SETTLE_FOLLOW] * math.log(scale / settled_at))
+        st[ST_TYRE_STABLE_SCALE] = settled_at * math.exp(prm[P_TYRE_SETTLE_FOLLOW] * moved)
         if tested:
             st[ST_TYRE_TESTED_FOR] += prm[P_DT]
     if (
