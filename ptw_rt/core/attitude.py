@@ -59,6 +59,7 @@ X_BAY = 5  # m/s^2, lateral accelerometer bias
 X_VY = 6  # m/s, lateral velocity of the reference point
 X_AV = 7  # m/s^2, its derivative
 N_X = 8
+N_BIASES = X_BAY - X_BP + 1  # the biases, X_BP .. X_BAY (contiguous)
 N_DYNAMIC_STATES = (X_PHI, X_PSI, X_VY, X_AV)  # reset on a restart; the biases are kept
 
 # ---- state buffer layout ----
@@ -89,6 +90,8 @@ STATE = Layout(
     held=1,  # consecutive cycles that integrated a held rate
     corrupt_run=1,  # cycles with corrupt input in the current burst (clean gaps shorter than BURST_GAP allowed)
     clean_run=1,  # consecutive cycles without corrupt input
+    burst_biases=N_BIASES,  # the biases (b_p, b_q, b_r, b_ay) as the current burst found them (only updates move them)
+    burst_roll_moved=1,  # rad, what the measurement updates have moved the roll by since the burst began
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -111,6 +114,8 @@ STATE = Layout(
     ST_HELD,
     ST_CORRUPT_RUN,
     ST_CLEAN_RUN,
+    ST_BURST_BIASES,
+    ST_BURST_ROLL_MOVED,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -132,9 +137,9 @@ MAX_LATERAL_ACCEL = 12.0
 # A burst of corrupt input (out-of-range values, broken counters, undecodable frames: garbage that reached the
 # sensors' frames) of at least BURST_CYCLES cycles, with clean gaps shorter than BURST_GAP: whatever of it passed
 # every check may have moved the biases along the direction a steady turn cannot observe (a roll error with
-# matching biases), so the biases' and the roll's uncertainty are reopened once per burst: the roll is VALID
-# again only when the data have pinned it down again (random garbage bursts into a steady turn: see
-# docs/estimator.md, "Known gaps").
+# matching biases), so once per burst, when it ends, the biases' and the roll's uncertainty grow by what the
+# burst's updates moved them (`_doubt_what_the_burst_moved`): the roll is VALID again only when the data have
+# pinned it down again (random garbage bursts into a steady turn: see docs/estimator.md, "Known gaps").
 BURST_CYCLES = 10
 BURST_GAP = 10
 _CORRUPT_INPUT = REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
@@ -250,6 +255,7 @@ OUTPUTS = Layout(
     course_fix=1,  # 1 if a GPS course fix was compared this cycle (fused or gated out)
     yaw_rate_sd=1,  # rad/s, standard deviation of yaw_rate from the biases' uncertainty (what the tyres learn on)
     bay_sd=1,  # m/s^2, standard deviation of the lateral accelerometer's bias estimate
+    roll_correction=1,  # rad, what this cycle's measurement updates moved the roll by (the prediction's move not)
     # the stage's (attitude_stage), not the filter's:
     ok=1,  # 1: the filter is initialised and every output above is finite
     rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
@@ -275,13 +281,14 @@ OUTPUTS = Layout(
     OUT_COURSE_FIX,
     OUT_YAW_RATE_SD,
     OUT_BAY_SD,
+    OUT_ROLL_CORRECTION,
     OUT_OK,
     OUT_REJECTED_RUN,
     OUT_CONSISTENCY,
     OUT_INCONSISTENT,
     OUT_SATURATED,
 ) = OUTPUTS.offsets
-N_FILTER_OUT = OUT_BAY_SD + 1  # what `attitude_step` writes
+N_FILTER_OUT = OUT_ROLL_CORRECTION + 1  # what `attitude_step` writes
 OUT_SIZE = OUTPUTS.size
 
 
@@ -507,6 +514,7 @@ def attitude_step(
 
     # ---- 1. measurements of the previous cycle, with central-difference lever-arm derivatives ----
     phi = x[X_PHI]
+    phi_predicted = phi
     s, c = math.sin(phi), math.cos(phi)
     bp, bq, br = x[X_BP], x[X_BQ], x[X_BR]
     q1, r1, u1 = prev[PREV_Q] - bq, prev[PREV_R] - br, prev[PREV_U]
@@ -618,6 +626,8 @@ def attitude_step(
             nu_course = st[ST_NU]
             course_fix = 1.0
 
+    roll_correction = x[X_PHI] - phi_predicted
+
     # ---- 3. predict to this cycle: trapezoidal integration of the previous and this cycle's rates (both are
     # known; the rectangle rule's dt^2 phi''/2 per step adds up to ~0.2 deg in a quick lane change) ----
     phi = x[X_PHI]
@@ -719,6 +729,7 @@ def attitude_step(
     var_r = s * s * P[X_BQ, X_BQ] + c * c * P[X_BR, X_BR] + 2.0 * s * c * P[X_BQ, X_BR]
     out[OUT_YAW_RATE_SD] = math.sqrt(max(var_r, 0.0))
     out[OUT_BAY_SD] = math.sqrt(max(P[X_BAY, X_BAY], 0.0))
+    out[OUT_ROLL_CORRECTION] = roll_correction
 
 
 # ---- the estimator's stage: the filter with its inputs from the inputs and speed stages ----
@@ -767,6 +778,10 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
     saturated = max(abs(raw[inp.RAW_P]), abs(raw[inp.RAW_Q]), abs(raw[inp.RAW_R])) >= GYRO_SATURATED
     force = math.sqrt(raw[inp.RAW_AX] ** 2 + raw[inp.RAW_AY] ** 2 + raw[inp.RAW_AZ] ** 2)
     accel_plausible = ACCEL_TRUSTED_MIN_G * prm[A_G] <= force <= ACCEL_TRUSTED_MAX_G * prm[A_G]
+    if st[ST_CORRUPT_RUN] == 0.0:  # no burst under way: what one would start from
+        for k in range(N_BIASES):
+            st[ST_BURST_BIASES + k] = st[ST_X + X_BP + k]
+        st[ST_BURST_ROLL_MOVED] = 0.0
     attitude_step(
         st,
         out,
@@ -785,14 +800,14 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         standstill,
         saturated,
     )
+    st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]
     if reasons_now & _CORRUPT_INPUT:
         st[ST_CORRUPT_RUN] += 1.0
         st[ST_CLEAN_RUN] = 0.0
     else:
         st[ST_CLEAN_RUN] += 1.0
         if st[ST_CLEAN_RUN] == 1.0 and st[ST_CORRUPT_RUN] >= BURST_CYCLES:
-            _reacquire_biases(st, prm)  # the burst is over (for now): what it left is doubted, once
-            _reacquire_roll(st, prm)
+            _doubt_what_the_burst_moved(st)  # the burst is over (for now): what it left is doubted, once
             st[ST_CORRUPT_RUN] = 0.0
         if st[ST_CLEAN_RUN] >= BURST_GAP:
             st[ST_CORRUPT_RUN] = 0.0
@@ -813,6 +828,23 @@ def _reacquire_biases(st: np.ndarray, prm: np.ndarray) -> None:
     for b in (X_BP, X_BQ, X_BR):
         P[b, b] += prm[A_INIT_GYRO_BIAS_SD] ** 2
     P[X_BAY, X_BAY] += prm[A_INIT_ACCEL_BIAS_SD] ** 2
+
+
+@njit(cache=True)
+def _doubt_what_the_burst_moved(st: np.ndarray) -> None:
+    """A burst of corrupt input has ended. Whatever of it passed every check moved the estimate by the
+    measurement updates it took part in: the biases by how far they are from where the burst found them (only
+    updates move them) and the roll by its updates' sum. The filter cannot tell garbage from data, so it doubts
+    exactly that much: each variance grows by its move squared. Garbage that moved them along what a steady turn
+    cannot observe (a roll error with matching biases) is doubted until the data pin it down again; a burst that
+    was dropped (frames refused, rates held, whose uncertainty the prediction already grew) moved nothing and
+    leaves the estimate as sure as the clean data made it (docs/estimator.md, "Known gaps")."""
+    P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
+    for k in range(N_BIASES):
+        moved = st[ST_X + X_BP + k] - st[ST_BURST_BIASES + k]
+        P[X_BP + k, X_BP + k] += moved * moved
+    moved = st[ST_BURST_ROLL_MOVED]
+    P[X_PHI, X_PHI] += moved * moved
 
 
 @njit(cache=True)
