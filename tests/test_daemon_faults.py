@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import logging
 import os
 import signal
 import socket
@@ -245,6 +246,46 @@ def test_persistent_bus_off_ready_and_pings(monkeypatch, notify, tmp_path):
     _assert_pinged_throughout(notify, 3.5)
     assert daemon.overruns <= MAX_OVERRUNS
     assert daemon.health()["last_send_error"] == "CanOperationError: simulated: bus-off"
+
+
+def test_a_bus_that_sends_nothing_for_seconds_is_reopened(monkeypatch, notify, tmp_path, ride_frames, caplog):
+    """A wedged adapter fails every send and never its receive: nothing went out again until a restart. After
+    SEND_STUCK_REOPEN_S without a frame out while frames failed, the bus is closed and reopened as a lost one is;
+    the reopened bus publishes, and the loop kept its period and its pings throughout."""
+    monkeypatch.setattr(daemon_mod, "SEND_STUCK_REOPEN_S", 1.5)
+
+    def wedged(_msg):
+        raise can.CanOperationError("simulated: adapter wedged")
+
+    opened = _use_faulty_bus(monkeypatch, send_fault=lambda n: wedged if n == 0 else None)
+    channel = _channel()
+    daemon = _daemon(tmp_path, notify, channel=channel)
+    with caplog.at_level(logging.ERROR, logger="ptw_rt"):
+        _run(daemon, 5.0, Feeder(channel, ride_frames, duration=5.5))
+    assert opened[0].sent == 0 and daemon.send_failures >= 100
+    assert daemon.send_stuck_reopens == 1 and daemon.bus_reopens == 1 and len(opened) == 2
+    assert opened[1].sent >= 150  # publishing again on the reopened bus
+    assert daemon.health()["inputs"]["IMU_Rates"]["frames"] >= 300  # and receiving on it
+    assert any("nothing sent for" in r.getMessage() and "adapter wedged" in r.getMessage() for r in caplog.records)
+    assert daemon.overruns <= MAX_OVERRUNS
+    _assert_pinged_throughout(notify, 5.0)
+
+
+def test_send_failures_with_frames_going_out_reopen_nothing(monkeypatch, notify, tmp_path):
+    """Every other frame fails (a busy bus): frames still go out, so the bus is not reopened."""
+    monkeypatch.setattr(daemon_mod, "SEND_STUCK_REOPEN_S", 1.0)
+    count = {"n": 0}
+
+    def every_other(_msg):
+        count["n"] += 1
+        if count["n"] % 2:
+            raise OSError(errno.ENOBUFS, "No buffer space available")
+
+    opened = _use_faulty_bus(monkeypatch, send_fault=lambda n: every_other)
+    daemon = _daemon(tmp_path, notify)
+    _run(daemon, 3.0)
+    assert daemon.send_errors >= 100 and opened[0].sent >= 100
+    assert daemon.send_stuck_reopens == 0 and len(opened) == 1
 
 
 @pytest.mark.parametrize("inline", [False, True])

@@ -18,6 +18,8 @@ Nothing that can block or take long runs in the loop's thread; the loop only han
   frame is tried ``1 + send_retries`` times; failures (any ``can.CanError``/``OSError``) are counted
   (``send_failures``, ``send_errors`` for every failed attempt), logged at most once per
   ``runtime.log_repeat_interval_s``, shown in the status and raise REASON_SEND_FAILURE for a second; never fatal.
+  When no frame has gone out for ``SEND_STUCK_REOPEN_S`` while frames failed, the bus is closed and reopened as a
+  lost one is (``send_stuck_reopens``; again after as long if it still sends nothing).
 * SIGHUP: a reload thread (normal scheduling) re-reads and validates the config and builds the new cycle
   (``RELOADING=1`` to systemd); the loop swaps it in between two cycles and sends ``READY=1``. An invalid config
   is logged and the running one kept (``READY=1`` all the same).
@@ -100,6 +102,10 @@ log = logging.getLogger("ptw_rt.daemon")
 REOPEN_INTERVAL_S = 1.0
 RESTART_ONLY = ("gps", "realtime")  # runtime sections a SIGHUP cannot put in force (the next start does)
 SEND_FAILURE_HOLD_S = 1.0
+# Nothing sent for this long while frames failed: the bus is closed and reopened like a lost one. A wedged adapter or
+# a driver's dead handle fails every send and never its receive; a bus-off controller that the kernel restarts
+# (`restart-ms`) loses nothing by a new socket. Longer than any transient (3 s of ENOBUFS are counted, not reopened)
+SEND_STUCK_REOPEN_S = 5.0
 STATUS_NOTIFY_INTERVAL_S = 1.0
 SEND_TIMEOUT_S = 0.005  # one bus.send may wait this long for room in the transmit queue (in the sender thread)
 SEND_QUEUE_FRAMES = 64  # ~13 cycles of output: beyond, the oldest frames are dropped (stale estimates are useless)
@@ -373,6 +379,7 @@ class Daemon:
         self.last_send_error: str | None = None
         self.last_open_error: str | None = None
         self.bus_reopens = 0
+        self.send_stuck_reopens = 0  # buses closed (to be reopened) because nothing could be sent on them
         self.reloads = 0  # configurations swapped in
         self.reload_failures = 0
         self.state_saves = 0
@@ -742,6 +749,9 @@ class Daemon:
         overrun_until = -math.inf
         send_fail_until = -math.inf
         send_problems = 0  # send_failures + send_dropped seen so far
+        frames_out_seen = 0
+        last_sent = t_start  # when a frame last went out (or the bus was last reopened for not sending)
+        problems_at_last_sent = 0
         overrun_rule = self.overrun_rule = OverrunRule()
         period_worst_us = 0.0
         try:
@@ -824,6 +834,24 @@ class Daemon:
                 if self._reader is not None and self._reader.failed:
                     self.rate_log.error("bus_lost", f"CAN bus lost ({self._reader.failed}); reopening", now)
                     self._close_bus()
+                if self.frames_out != frames_out_seen:
+                    frames_out_seen = self.frames_out
+                    last_sent = now
+                    problems_at_last_sent = send_problems
+                elif (
+                    self.bus is not None
+                    and send_problems > problems_at_last_sent
+                    and now - last_sent >= SEND_STUCK_REOPEN_S
+                ):
+                    self.rate_log.error(
+                        "send_stuck",
+                        f"nothing sent for {now - last_sent:.1f} s ({self.last_send_error}); reopening the CAN bus",
+                        now,
+                    )
+                    self.send_stuck_reopens += 1
+                    self._close_bus()
+                    last_sent = now
+                    problems_at_last_sent = send_problems
                 if self.bus is None:
                     self._reopen(now)
                 if now >= next_status:
@@ -896,6 +924,7 @@ class Daemon:
             "send_dropped": self.send_dropped,
             "last_send_error": self.last_send_error,
             "bus_reopens": self.bus_reopens,
+            "send_stuck_reopens": self.send_stuck_reopens,
             "reloads": self.reloads,
             "reload_failures": self.reload_failures,
             "watchdog_pings": self.watchdog.pings,
@@ -927,6 +956,7 @@ class Daemon:
             "failed": self.send_failures,
             "dropped": self.send_dropped,
             "bus_reopens": self.bus_reopens,
+            "send_stuck_reopens": self.send_stuck_reopens,
         }
         summary = HealthSummary(
             mode=int(self.estimates[E_MODE]),
