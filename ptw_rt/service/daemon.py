@@ -750,7 +750,7 @@ class Daemon:
         send_fail_until = -math.inf
         send_problems = 0  # send_failures + send_dropped seen so far
         frames_out_seen = 0
-        last_sent = t_start  # when a frame last went out (or the bus was last reopened for not sending)
+        last_sent = t_start  # when a frame last went out (or there was no bus to send on)
         problems_at_last_sent = 0
         overrun_rule = self.overrun_rule = OverrunRule()
         period_worst_us = 0.0
@@ -834,19 +834,14 @@ class Daemon:
                 if self._reader is not None and self._reader.failed:
                     self.rate_log.error("bus_lost", f"CAN bus lost ({self._reader.failed}); reopening", now)
                     self._close_bus()
-                if self.frames_out != frames_out_seen:
+                if self.frames_out != frames_out_seen or self.bus is None:  # sending, or nothing to send on
                     frames_out_seen = self.frames_out
                     last_sent = now
                     problems_at_last_sent = send_problems
-                elif (
-                    self.bus is not None
-                    and send_problems > problems_at_last_sent
-                    and now - last_sent >= SEND_STUCK_REOPEN_S
-                ):
+                elif send_problems > problems_at_last_sent and now - last_sent >= SEND_STUCK_REOPEN_S:
+                    why = self.last_send_error or f"{self.send_dropped} frames dropped, the sender stuck"
                     self.rate_log.error(
-                        "send_stuck",
-                        f"nothing sent for {now - last_sent:.1f} s ({self.last_send_error}); reopening the CAN bus",
-                        now,
+                        "send_stuck", f"nothing sent for {now - last_sent:.1f} s ({why}); reopening the CAN bus", now
                     )
                     self.send_stuck_reopens += 1
                     self._close_bus()
