@@ -778,7 +778,8 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
     saturated = max(abs(raw[inp.RAW_P]), abs(raw[inp.RAW_Q]), abs(raw[inp.RAW_R])) >= GYRO_SATURATED
     force = math.sqrt(raw[inp.RAW_AX] ** 2 + raw[inp.RAW_AY] ** 2 + raw[inp.RAW_AZ] ** 2)
     accel_plausible = ACCEL_TRUSTED_MIN_G * prm[A_G] <= force <= ACCEL_TRUSTED_MAX_G * prm[A_G]
-    if st[ST_CORRUPT_RUN] == 0.0:  # no burst under way: what one would start from
+    corrupt = (reasons_now & _CORRUPT_INPUT) != 0
+    if corrupt and st[ST_CORRUPT_RUN] == 0.0:  # a burst begins: where it found the biases, before its data
         for k in range(N_BIASES):
             st[ST_BURST_BIASES + k] = st[ST_X + X_BP + k]
         st[ST_BURST_ROLL_MOVED] = 0.0
@@ -800,8 +801,9 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         standstill,
         saturated,
     )
-    st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]
-    if reasons_now & _CORRUPT_INPUT:
+    if corrupt or st[ST_CORRUPT_RUN] > 0.0:  # within a burst (its clean gaps and first clean cycle included)
+        st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]
+    if corrupt:
         st[ST_CORRUPT_RUN] += 1.0
         st[ST_CLEAN_RUN] = 0.0
     else:
