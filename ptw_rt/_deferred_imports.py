@@ -1,4 +1,4 @@
-"""python-can without its MF4 support until a log needs it.
+"""Two imports no command needs at its start, deferred: python-can's MF4 support, and numba's probe for scipy.
 
 ``import can`` (and ``import cantools``, which imports ``can``) executes ``can.io.mf4``, which imports ``asammdf``
 when it is installed, and asammdf imports pandas: 0.2 s and ~60 MB at every start of every command, the daemon
@@ -8,6 +8,13 @@ the import of asammdf fail while, and only while, ``can.io.mf4`` is first execut
 as absent. ``mf4()`` imports asammdf and executes ``can.io.mf4`` again: from then on it has MF4 support (its classes,
 old and new, read the module's globals). Nothing else is affected: asammdf imported by anyone else, or before,
 is imported as usual.
+
+``import numba`` executes ``numba.np.arraymath``, whose ``_check_blas`` imports ``scipy.linalg`` to learn whether
+BLAS is there for the jitted ``np.dot`` family: 0.3-0.4 s at every start where scipy is installed (the design,
+test and evaluation environments), for a compiled path that never calls BLAS (the hot path's algebra is written
+out). While ``numba.np.arraymath`` is first executed, scipy fails to import: numba sets up its pure fallback for
+the one inner product that looks at the probe, and any jitted call of np.dot/np.linalg still imports scipy when
+it is compiled (``numba.np.linalg.ensure_blas``). scipy imported by anyone else, or before, is imported as usual.
 """
 
 from __future__ import annotations
@@ -18,18 +25,25 @@ import sys
 from types import ModuleType
 
 _MF4 = "can.io.mf4"
+_NUMBA_ARRAYMATH = "numba.np.arraymath"
+# top-level package -> the module during whose first execution it is not imported
+DEFERRED = {"asammdf": _MF4, "scipy": _NUMBA_ARRAYMATH}
 
 
-class _DeferAsammdf(importlib.abc.MetaPathFinder):
+def _executing(module: str) -> bool:
+    spec = getattr(sys.modules.get(module), "__spec__", None)
+    return spec is not None and bool(getattr(spec, "_initializing", False))
+
+
+class _DeferImports(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):  # noqa: ANN001, ANN201 - importlib's protocol
-        if name == "asammdf":
-            spec = getattr(sys.modules.get(_MF4), "__spec__", None)
-            if spec is not None and getattr(spec, "_initializing", False):  # can.io.mf4 is executing
-                raise ModuleNotFoundError("asammdf is imported when a log needs it (ptw_rt._deferred_imports)")
+        importer = DEFERRED.get(name.partition(".")[0])
+        if importer is not None and _executing(importer):
+            raise ModuleNotFoundError(f"{name} is imported when it is needed (ptw_rt._deferred_imports)")
         return None
 
 
-FINDER = _DeferAsammdf()
+FINDER = _DeferImports()
 
 
 def install() -> None:

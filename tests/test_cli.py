@@ -41,3 +41,22 @@ def test_missing_design_extra_is_one_line(command):
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
     assert f"ptw-rt {command}: needs the 'design' extra" in lines[0] and "pip install 'ptw-rt[design]'" in lines[0]
+
+
+def test_a_command_starts_without_scipy_linalg_and_jitted_linear_algebra_still_compiles(tmp_path):
+    """numba probes for BLAS by importing scipy.linalg when it is imported (0.2-0.4 s at every start where scipy
+    is installed); the command line defers that probe (``ptw_rt._deferred_imports``). A replay then never loads
+    scipy.linalg, and a jitted np.dot, which does need BLAS, still compiles and runs in the same process."""
+    pytest.importorskip("scipy.linalg")  # nothing to defer where scipy is not installed
+    log = tmp_path / "one.log"
+    log.write_text("(0.000000) can0 100#0000000000000000\n")
+    probe = (
+        "import sys; from ptw_rt.cli import main\n"
+        f"code = main(['replay', {str(log)!r}, '--out', {str(tmp_path / 'o.log')!r}, '--no-progress'])\n"
+        "print('LINALG', 'scipy.linalg' in sys.modules, 'NUMBA', 'numba.np.arraymath' in sys.modules)\n"
+        "import numpy as np; from numba import njit\n"
+        "print('DOT', njit(lambda a, b: np.dot(a, b))(np.ones(3), np.arange(3.0)))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert "LINALG False NUMBA True" in done.stdout, done.stdout + done.stderr
+    assert "DOT 3.0" in done.stdout, done.stdout + done.stderr
