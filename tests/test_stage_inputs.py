@@ -136,5 +136,29 @@ def test_the_encoders_first_value_and_one_after_a_silence_are_not_jumps(stage):
     step = stage.params[inp.P_MAX_STEER_STEP]
     for _ in range(4):
         run(stage, sample(steer=512.0, stale=lay.MSG_STEER))
-    out = run(stage, sample(steer=512.0 + 4.5 * step))  # 5 cycles since the last sound value
-    assert out[inp.OUT_RAW + inp.RAW_STEER] == 512.0 + 4.5 * step and int(out[inp.OUT_REASONS]) == 0
+    out = run(stage, sample(steer=512.0 + 4.5 * step))  # 5 cycles since the last sound value: within the window
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 512.0 and int(out[inp.OUT_REASONS]) == 0  # taken when confirmed
+    out = run(stage, sample(steer=512.0 + 5.0 * step))  # the next frame agrees: the steering did turn
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 512.0 + 5.0 * step and int(out[inp.OUT_REASONS]) == 0
+
+
+def test_a_value_after_a_gap_is_taken_only_when_the_next_frame_agrees(stage):
+    """The encoder's frame has no CRC: in a burst of garbage a random count whose counter happens to match lands
+    in the window that grew with the gap. Taken, it became the baseline and the true values were refused as
+    jumps (`sensor_faults` seed 419: the steer 4 deg off and the torque 30 N m for 0.2 s). It now waits for the
+    next frame; the true value, within one cycle's motion of the last sound one, is taken at once."""
+    step = stage.params[inp.P_MAX_STEER_STEP]
+    run(stage, sample(steer=512.0))
+    for _ in range(5):  # a burst: held frames
+        run(stage, sample(steer=0.0, stale=lay.MSG_STEER))
+    out = run(stage, sample(steer=512.0 + 3.0 * step))  # garbage inside the window
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 512.0
+    out = run(stage, sample(steer=513.0))  # the true steer, a count on
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 513.0 and int(out[inp.OUT_REASONS]) == 0
+    out = run(stage, sample(steer=514.0))
+    assert out[inp.OUT_RAW + inp.RAW_STEER] == 514.0 and int(out[inp.OUT_REASONS]) == 0
+    # garbage never confirmed by its follower is never taken, however often it comes
+    for k in range(20):
+        run(stage, sample(steer=0.0, stale=lay.MSG_STEER))
+        out = run(stage, sample(steer=514.0 + (3.0 + (k % 3)) * step * (1 if k % 2 else -1)))
+        assert out[inp.OUT_RAW + inp.RAW_STEER] == 514.0

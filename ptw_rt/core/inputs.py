@@ -58,8 +58,21 @@ STATE = Layout(
     rates_age=1,  # cycles since the last new and sound rates (the baseline of the step check)
     steer_seen=1,  # 1 once the encoder has given a sound value (before: nothing to compare a value with)
     steer_age=1,  # cycles since its last sound value
+    steer_pending=1,  # 1 while a value after a gap waits for the next frame to confirm it
+    steer_candidate=1,  # that value (counts)
 )
-ST_LAST, ST_STEER_JUMPS, ST_GPS_AGE, ST_INIT, ST_RATE_JUMPS, ST_RATES_AGE, ST_STEER_SEEN, ST_STEER_AGE = STATE.offsets
+(
+    ST_LAST,
+    ST_STEER_JUMPS,
+    ST_GPS_AGE,
+    ST_INIT,
+    ST_RATE_JUMPS,
+    ST_RATES_AGE,
+    ST_STEER_SEEN,
+    ST_STEER_AGE,
+    ST_STEER_PENDING,
+    ST_STEER_CANDIDATE,
+) = STATE.offsets
 
 # The body cannot change its rotation rate faster than this: a scooter's quickest roll or yaw flick is ~20 rad/s^2
 # (30 deg of lean reversed in half a second); gyro noise and engine vibration are a fraction of RATE_NOISE_STEP.
@@ -133,6 +146,13 @@ def build_params(settings, design) -> np.ndarray:
     )
 
 
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _count_distance(a: float, b: float, counts_per_rev: float) -> float:
+    """Encoder counts between two readings, the short way round the wrap."""
+    d = abs(a - b)
+    return min(d, counts_per_rev - d)
+
+
 @njit(cache=True)
 def _wrap_pi(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
@@ -202,16 +222,32 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     elif st[ST_STEER_SEEN] != 0.0:
         # the steering cannot turn more than max_steer_step counts per cycle since its last sound value; a
         # bigger jump is a corrupt frame (unless it persists: then the encoder really is there)
-        jump = abs(raw[RAW_STEER] - st[ST_LAST + RAW_STEER])
-        jump = min(jump, prm[P_STEER_CPR] - jump)  # across the wrap
-        if jump > prm[P_MAX_STEER_STEP] * (st[ST_STEER_AGE] + 1.0) and st[ST_STEER_JUMPS] < prm[P_STEER_RESYNC]:
+        step = prm[P_MAX_STEER_STEP]
+        jump = _count_distance(raw[RAW_STEER], st[ST_LAST + RAW_STEER], prm[P_STEER_CPR])
+        confirmed = (
+            st[ST_STEER_PENDING] != 0.0
+            and _count_distance(raw[RAW_STEER], st[ST_STEER_CANDIDATE], prm[P_STEER_CPR]) <= step
+        )
+        resync = st[ST_STEER_JUMPS] >= prm[P_STEER_RESYNC]  # refused that often in a row: the encoder says so
+        if jump > step * (st[ST_STEER_AGE] + 1.0) and not resync:
             st[ST_STEER_JUMPS] += 1.0
             st[ST_STEER_AGE] += 1.0
+            st[ST_STEER_PENDING] = 0.0
             raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
             reasons_now |= REASON_OUT_OF_RANGE
+        elif st[ST_STEER_AGE] > 0.0 and jump > step and not confirmed and not resync:
+            # after a gap (held or refused frames) the window has grown with it, and a garbage payload whose
+            # counter happens to match lands in it (the frame has no CRC): a random count 3 deg off, taken, locked
+            # the steer there and refused the true values as jumps (`sensor_faults` seed 419: 30 N m of torque).
+            # Such a value is taken once the next frame agrees with it; within one cycle's motion it is taken now
+            st[ST_STEER_PENDING] = 1.0
+            st[ST_STEER_CANDIDATE] = raw[RAW_STEER]
+            st[ST_STEER_AGE] += 1.0
+            raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
         else:
             st[ST_STEER_JUMPS] = 0.0
             st[ST_STEER_AGE] = 0.0
+            st[ST_STEER_PENDING] = 0.0
     elif raw[RAW_STEER] == sample[S_STEER_COUNT]:  # the encoder's first sound value: nothing to compare it with
         st[ST_STEER_SEEN] = 1.0
         st[ST_STEER_AGE] = 0.0
