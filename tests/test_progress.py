@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import io
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 from ptw_rt import _numba_cache
 from ptw_rt.progress import Progress
@@ -130,3 +133,20 @@ def test_a_planted_shared_fallback_directory_is_never_used(tmp_path, monkeypatch
     buf = io.StringIO()
     assert _numba_cache.announce_compile(buf)
     assert "on every start" in buf.getvalue() and "not a private directory" in buf.getvalue()
+
+
+def test_a_program_that_imported_numba_first_still_caches_in_the_keyed_directory(tmp_path):
+    """numba picks each function's cache directory when it is decorated, from the NUMBA_CACHE_DIR it read when it
+    was imported: a script that imported numba before ptw_rt cached ptw_rt's code in `__pycache__` beside the
+    source, unkeyed, and ran a changed callee's stale machine code (a division by zero in `drive_block`)."""
+    code = (
+        "import numba\nimport ptw_rt, os\nfrom ptw_rt.core import tyre_bank\n"
+        "tyre_bank.state_size(4)\nprint(os.environ['NUMBA_CACHE_DIR'])\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    keyed = Path(done.stdout.strip())
+    assert keyed.parent == tmp_path / "ptw-rt" / "numba"
+    assert list(keyed.glob("*/tyre_bank.state_size-*.nbi")), sorted(str(p) for p in keyed.rglob("*"))
