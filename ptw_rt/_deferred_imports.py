@@ -10,7 +10,7 @@ old and new, read the module's globals). Nothing else is affected: asammdf impor
 is imported as usual.
 
 ``import numba`` executes ``numba.np.arraymath``, whose ``_check_blas`` imports ``scipy.linalg`` to learn whether
-BLAS is there for the jitted ``np.dot`` family: 0.3-0.4 s at every start where scipy is installed (the design,
+BLAS is there for the jitted ``np.dot`` family: 0.2-0.3 s at every start where scipy is installed (the design,
 test and evaluation environments), for a compiled path that never calls BLAS (the hot path's algebra is written
 out). While ``numba.np.arraymath`` is first executed, scipy fails to import: numba sets up its pure fallback for
 the one inner product that looks at the probe, and any jitted call of np.dot/np.linalg still imports scipy when

@@ -103,7 +103,7 @@ def _tell_numba_if_imported() -> None:
     """numba reads NUMBA_CACHE_DIR when it is imported, and each `cache=True` function picks its cache directory
     when it is decorated. A program that imported numba before ptw_rt (a user's script, a notebook) would have
     every ptw_rt function cache in `__pycache__` beside the source, unkeyed: stale machine code of a changed callee
-    ran (a replay script died in `drive_block` with a division by zero, 2026-11-27). numba's own way to re-read its
+    ran (a profiling script died in `drive_block` with a division by zero, 2026-11-27). numba's own way to re-read its
     environment makes the keyed directory count before any ptw_rt function is decorated."""
     import sys
 
