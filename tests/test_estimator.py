@@ -381,7 +381,9 @@ def test_a_burst_of_garbage_never_leaves_a_wrong_roll_valid(estimator_factory):
     reason bits) into a converged steady turn, then clean riding (at once or after a 7 s gap): whenever roll is
     VALID from 1 s on, it is within the supervisor's 3 deg. Before the gyro step check, the held-rate uncertainty
     and the reopening after a corrupt burst, 92 of 200 such bursts (up to 0.4 s) left roll VALID 3-15 deg off;
-    after, 0 of 600 (docs/estimator.md, "Known gaps"); 25 fixed ones here."""
+    after, 0 of 600 (docs/estimator.md, "Known gaps"); 25 fixed ones here. And within 1 deg since garbage after a
+    gap waits for the next sample's confirmation (2026-11-27: two of these 25 were VALID 1.4-1.8 deg off before,
+    20 of 1200 of the same loop on six seeds, all within 0.47 deg after)."""
     rng = random.Random(5)
     pool = [0.0, 512.0, 1023.0, 30.0, -30.0, 3.0, 1.0, 2.0, -1.0, 20.0, math.nan, math.inf, 1e6, -1e6]
     truth = math.atan(20.0 * 0.05 / 9.81)
@@ -406,7 +408,8 @@ def test_a_burst_of_garbage_never_leaves_a_wrong_roll_valid(estimator_factory):
             if k > 100 and int(out[lay.E_VALID]) & lay.V_ROLL:
                 error = max(error, abs(out[lay.E_ROLL] - truth))
         worst.append(math.degrees(error))
-    assert max(worst) < 3.0, worst
+    assert max(worst) < 3.0, worst  # the documented tolerance
+    assert max(worst) < 1.0, worst  # what the input checks give today
 
 
 @pytest.mark.slow

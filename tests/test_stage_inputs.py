@@ -121,8 +121,27 @@ def test_the_gyro_step_allowed_grows_with_the_time_without_sound_rates(stage):
     for _ in range(8):
         out = run(stage, sample(p=1e6))  # out of range: replaced, not sound
         assert out[inp.OUT_RATES_OK] == 0.0
-    out = run(stage, sample(p=2.0))  # 2 rad/s in 90 ms: within 0.5 + 30 x 0.09
-    assert out[inp.OUT_RAW + inp.RAW_P] == 2.0 and out[inp.OUT_RATES_OK] == 1.0
+    out = run(stage, sample(p=2.0))  # 2 rad/s in 90 ms: within 0.5 + 30 x 0.09, taken when the next agrees
+    assert out[inp.OUT_RAW + inp.RAW_P] == 0.0 and out[inp.OUT_RATES_OK] == 0.0
+    assert int(out[inp.OUT_REASONS]) == 0  # not refused: waiting
+    out = run(stage, sample(p=2.1))
+    assert out[inp.OUT_RAW + inp.RAW_P] == 2.1 and out[inp.OUT_RATES_OK] == 1.0
+
+
+def test_rates_after_a_gap_are_taken_only_when_the_next_sample_agrees(stage):
+    """The IMU_Rates frame has no CRC either: garbage inside the window a gap grew, taken, became the baseline;
+    the true rates were then refused as jumps and the garbage held (and integrated into the roll) for RATE_RESYNC
+    cycles. Now it waits for the next sample; the true rates, within one cycle's change of the last sound ones,
+    are taken at once."""
+    run(stage, sample(p=0.1))
+    for _ in range(6):
+        run(stage, sample(p=0.1, stale=lay.MSG_IMU_RATES))
+    out = run(stage, sample(p=2.0))  # garbage within the grown window
+    assert out[inp.OUT_RAW + inp.RAW_P] == 0.1 and out[inp.OUT_RATES_OK] == 0.0
+    out = run(stage, sample(p=0.12))  # the true rate
+    assert out[inp.OUT_RAW + inp.RAW_P] == 0.12 and out[inp.OUT_RATES_OK] == 1.0 and int(out[inp.OUT_REASONS]) == 0
+    out = run(stage, sample(p=0.15))
+    assert out[inp.OUT_RAW + inp.RAW_P] == 0.15 and out[inp.OUT_RATES_OK] == 1.0
 
 
 def test_the_encoders_first_value_and_one_after_a_silence_are_not_jumps(stage):

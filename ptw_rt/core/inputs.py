@@ -5,7 +5,10 @@ A non-finite or implausible value (beyond the configured limits) is replaced by 
 a stale message, or one whose rolling counter broke this cycle (S_SUSPECT: its payload
 may be garbage), is held; a steer-encoder jump larger than the steering can turn in one cycle is a corrupt
 frame and held, unless it persists for ``steer_resync`` cycles (then the encoder really is there, e.g. after
-a long silence). GPS: a new fix with at least a 2D solution is usable; its age decides GPS_LOST.
+a long silence). Both windows grow with the time since the last sound value, and neither frame has a CRC: after a
+gap, a steer count or gyro rates further than one cycle's motion from the last sound ones are taken only when the
+next frame agrees with them (garbage whose counter matched had become the baseline and locked the true values
+out). GPS: a new fix with at least a 2D solution is usable; its age decides GPS_LOST.
 """
 
 from __future__ import annotations
@@ -60,6 +63,8 @@ STATE = Layout(
     steer_age=1,  # cycles since its last sound value
     steer_pending=1,  # 1 while a value after a gap waits for the next frame to confirm it
     steer_candidate=1,  # that value (counts)
+    rates_pending=1,  # the same for the gyro rates
+    rates_candidate=3,  # p, q, r [rad/s]
 )
 (
     ST_LAST,
@@ -72,6 +77,8 @@ STATE = Layout(
     ST_STEER_AGE,
     ST_STEER_PENDING,
     ST_STEER_CANDIDATE,
+    ST_RATES_PENDING,
+    ST_RATES_CANDIDATE,
 ) = STATE.offsets
 
 # The body cannot change its rotation rate faster than this: a scooter's quickest roll or yaw flick is ~20 rad/s^2
@@ -201,19 +208,40 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
         for k in range(3):
             raw[k] = st[ST_LAST + k]
     elif st[ST_INIT] != 0.0:  # a step no body can make since the last sound rates: a corrupt sample
+        one_cycle = RATE_NOISE_STEP + MAX_ANGULAR_ACCEL * dt
         step = RATE_NOISE_STEP + MAX_ANGULAR_ACCEL * dt * (st[ST_RATES_AGE] + 1.0)
         jumped = False
+        far = False  # further from the last sound rates than one cycle's change
+        confirmed = st[ST_RATES_PENDING] != 0.0  # ... and within one cycle's change of the value that waits
         for k in range(3):
-            if abs(raw[k] - st[ST_LAST + k]) > step:
+            d = abs(raw[k] - st[ST_LAST + k])
+            if d > step:
                 jumped = True
-        if jumped and st[ST_RATE_JUMPS] < RATE_RESYNC:
+            if d > one_cycle:
+                far = True
+            if abs(raw[k] - st[ST_RATES_CANDIDATE + k]) > one_cycle:
+                confirmed = False
+        resync = st[ST_RATE_JUMPS] >= RATE_RESYNC
+        if jumped and not resync:
             st[ST_RATE_JUMPS] += 1.0
+            st[ST_RATES_PENDING] = 1.0  # a value that persists confirms itself once the window allows it
             for k in range(3):
+                st[ST_RATES_CANDIDATE + k] = raw[k]
                 raw[k] = st[ST_LAST + k]
             reasons_now |= REASON_OUT_OF_RANGE
             rates_replaced = True
+        elif st[ST_RATES_AGE] > 0.0 and far and not confirmed and not resync:
+            # after a gap the window has grown with it: garbage whose counter matched, taken there, became the
+            # baseline, and the true rates were refused as jumps and the garbage held for RATE_RESYNC cycles (the
+            # steer encoder's case below). Such rates are taken once the next sample agrees with them
+            st[ST_RATES_PENDING] = 1.0
+            for k in range(3):
+                st[ST_RATES_CANDIDATE + k] = raw[k]
+                raw[k] = st[ST_LAST + k]
+            rates_replaced = True
         else:
             st[ST_RATE_JUMPS] = 0.0
+            st[ST_RATES_PENDING] = 0.0
     if rates_replaced:  # some rate of this cycle is a held value: the rates are not this cycle's measurement
         held |= MSG_IMU_RATES
     if held & MSG_STEER:
@@ -232,7 +260,8 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
         if jump > step * (st[ST_STEER_AGE] + 1.0) and not resync:
             st[ST_STEER_JUMPS] += 1.0
             st[ST_STEER_AGE] += 1.0
-            st[ST_STEER_PENDING] = 0.0
+            st[ST_STEER_PENDING] = 1.0  # a value that persists confirms itself once the window allows it
+            st[ST_STEER_CANDIDATE] = raw[RAW_STEER]
             raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
             reasons_now |= REASON_OUT_OF_RANGE
         elif st[ST_STEER_AGE] > 0.0 and jump > step and not confirmed and not resync:
