@@ -222,23 +222,20 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
             if abs(raw[k] - st[ST_RATES_CANDIDATE + k]) > one_cycle:
                 confirmed = False
         resync = st[ST_RATE_JUMPS] >= RATE_RESYNC
-        if jumped and not resync:
-            st[ST_RATE_JUMPS] += 1.0
-            st[ST_RATES_PENDING] = 1.0  # a value that persists confirms itself once the window allows it
-            for k in range(3):
-                st[ST_RATES_CANDIDATE + k] = raw[k]
-                raw[k] = st[ST_LAST + k]
-            reasons_now |= REASON_OUT_OF_RANGE
-            rates_replaced = True
-        elif st[ST_RATES_AGE] > 0.0 and far and not confirmed and not resync:
-            # after a gap the window has grown with it: garbage whose counter matched, taken there, became the
-            # baseline, and the true rates were refused as jumps and the garbage held for RATE_RESYNC cycles (the
-            # steer encoder's case below). Such rates are taken once the next sample agrees with them
+        refused = jumped and not resync
+        # after a gap the window has grown with it: garbage whose counter matched, taken there, became the baseline,
+        # and the true rates were refused as jumps and the garbage held for RATE_RESYNC cycles (the steer encoder's
+        # case below). Such rates, and refused ones (a value that persists confirms itself once the window allows
+        # it), wait until the next sample agrees with them
+        if refused or (st[ST_RATES_AGE] > 0.0 and far and not confirmed and not resync):
             st[ST_RATES_PENDING] = 1.0
             for k in range(3):
                 st[ST_RATES_CANDIDATE + k] = raw[k]
                 raw[k] = st[ST_LAST + k]
             rates_replaced = True
+            if refused:
+                st[ST_RATE_JUMPS] += 1.0
+                reasons_now |= REASON_OUT_OF_RANGE
         else:
             st[ST_RATE_JUMPS] = 0.0
             st[ST_RATES_PENDING] = 0.0
@@ -257,22 +254,20 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
             and _count_distance(raw[RAW_STEER], st[ST_STEER_CANDIDATE], prm[P_STEER_CPR]) <= step
         )
         resync = st[ST_STEER_JUMPS] >= prm[P_STEER_RESYNC]  # refused that often in a row: the encoder says so
-        if jump > step * (st[ST_STEER_AGE] + 1.0) and not resync:
-            st[ST_STEER_JUMPS] += 1.0
-            st[ST_STEER_AGE] += 1.0
-            st[ST_STEER_PENDING] = 1.0  # a value that persists confirms itself once the window allows it
-            st[ST_STEER_CANDIDATE] = raw[RAW_STEER]
-            raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
-            reasons_now |= REASON_OUT_OF_RANGE
-        elif st[ST_STEER_AGE] > 0.0 and jump > step and not confirmed and not resync:
-            # after a gap (held or refused frames) the window has grown with it, and a garbage payload whose
-            # counter happens to match lands in it (the frame has no CRC): a random count 3 deg off, taken, locked
-            # the steer there and refused the true values as jumps (`sensor_faults` seed 419: 30 N m of torque).
-            # Such a value is taken once the next frame agrees with it; within one cycle's motion it is taken now
+        refused = jump > step * (st[ST_STEER_AGE] + 1.0) and not resync
+        # after a gap (held or refused frames) the window has grown with it, and a garbage payload whose counter
+        # happens to match lands in it (the frame has no CRC): a random count 3 deg off, taken, locked the steer
+        # there and refused the true values as jumps (`sensor_faults` seed 419: 30 N m of torque). Such a value, and
+        # a refused one (a value that persists confirms itself once the window allows it), waits until the next
+        # frame agrees with it; within one cycle's motion of the last sound value it is taken now
+        if refused or (st[ST_STEER_AGE] > 0.0 and jump > step and not confirmed and not resync):
             st[ST_STEER_PENDING] = 1.0
             st[ST_STEER_CANDIDATE] = raw[RAW_STEER]
             st[ST_STEER_AGE] += 1.0
             raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
+            if refused:
+                st[ST_STEER_JUMPS] += 1.0
+                reasons_now |= REASON_OUT_OF_RANGE
         else:
             st[ST_STEER_JUMPS] = 0.0
             st[ST_STEER_AGE] = 0.0
