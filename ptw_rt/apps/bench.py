@@ -187,9 +187,7 @@ def measure_replay_command() -> dict:
 
 # A child's own peak resident memory, printed by it: VmHWM of the memory map exec gave it. Not ru_maxrss: Linux
 # keeps that across fork and exec, so a child of a bench that holds 400 MB reports at least 400 MB.
-PEAK_RSS_MB = (
-    "next(int(line.split()[1]) for line in open('/proc/self/status') if line.startswith('VmHWM:')) / 1024"
-)
+PEAK_RSS_MB = "next(int(line.split()[1]) for line in open('/proc/self/status') if line.startswith('VmHWM:')) / 1024"
 
 
 def measure_start(cache_dir: str) -> dict:
