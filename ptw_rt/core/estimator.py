@@ -149,7 +149,7 @@ def publish(
     o_sup: np.ndarray,
 ) -> None:
     """The Estimates record from the stages' outputs; nothing non-finite leaves the step."""
-    run = o_cnd[cnd.OUT_RUN] != 0.0
+    run = o_lat[lat.OUT_RAN] != 0.0  # the filters ran: on every sensor, or coasting through a silent one
     z = o_lat[lat.OUT_Z : lat.OUT_Z + kf.N_Z]  # the fusion filter's (docs/estimator.md, what is published)
     raw = o_in[inp.OUT_RAW : inp.OUT_RAW + inp.N_RAW]
     roll = o_cnd[cnd.OUT_ROLL]

@@ -112,6 +112,7 @@ OUTPUTS = Layout(
     reasons=1,  # REASON_* bits of this cycle's inputs (edge's, out of range, stale, GPS lost); REASON_OTHER
     core_ok=1,  # 1: IMU rates and steer encoder not stale
     imu_ok=1,  # 1: IMU rates not stale (roll can be estimated without the encoder)
+    steer_ok=1,  # 1: steer encoder not stale
     accel_ok=1,  # 1: accelerometer not stale
     accel_trusted=1,  # 1: this cycle's accelerometer values are new and sound (not held)
     rates_ok=1,  # 1: this cycle's rates are new and sound
@@ -126,6 +127,7 @@ OUTPUTS = Layout(
     OUT_REASONS,
     OUT_CORE_OK,
     OUT_IMU_OK,
+    OUT_STEER_OK,
     OUT_ACCEL_OK,
     OUT_ACCEL_TRUSTED,
     OUT_RATES_OK,
@@ -300,6 +302,7 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     out[OUT_REASONS] = (reasons_now & REASON_MASK) | (REASON_OTHER if reasons_now & ~REASON_MASK else 0)
     out[OUT_CORE_OK] = 1.0 if (stale & (MSG_IMU_RATES | MSG_STEER)) == 0 else 0.0
     out[OUT_IMU_OK] = 1.0 if (stale & MSG_IMU_RATES) == 0 else 0.0
+    out[OUT_STEER_OK] = 1.0 if (stale & MSG_STEER) == 0 else 0.0
     out[OUT_ACCEL_OK] = 1.0 if (stale & MSG_IMU_ACCEL) == 0 else 0.0
     out[OUT_ACCEL_TRUSTED] = 1.0 if (held & MSG_IMU_ACCEL) == 0 else 0.0
     out[OUT_RATES_OK] = 1.0 if (held & MSG_IMU_RATES) == 0 else 0.0

@@ -14,8 +14,12 @@ measurements new and in range), after the filters settled, above `min_learning_s
 y = [steer, ground yaw rate, roll rate, a_y, kinematic roll]: the rates come bias-corrected from the attitude
 filter, whose roll is the fifth measurement. A measurement that is not there this cycle (accelerometer held,
 attitude filter not running) is replaced by the filter's own prediction of it (no innovation). The filter runs
-only while the model-based observers run (conditioning's OUT_RUN); a blown-up or implausible estimate resets
-it (OUT_DIVERGED, the supervisor raises REASON_DIVERGING).
+only while the model-based observers run (conditioning's OUT_RUN), and coasts through a short silence of the
+steer encoder (`MAX_STEER_COAST`) or of the IMU's rates (`MAX_IMU_COAST`) while the other is there: the silent
+sensor's measurements are the filter's own prediction, nothing is learned, the convergence clock restarts (so
+nothing it publishes is VALID until it has run on all sensors again) and OUT_RAN says z is the filter's; a
+longer silence stops it as before. A blown-up or implausible estimate resets it (OUT_DIVERGED, the supervisor
+raises REASON_DIVERGING).
 
 The observers' convergence clock lives here (OUT_RUN_TIME: seconds since the model-based observers last
 (re)started; the supervisor's CONVERGING mode and the stiffness stage's permission to adapt use it). Nothing
@@ -49,6 +53,8 @@ STATE = Layout(
     slope_sum=1,  # the tyres' slope over their small-slip stiffness, summed over the learning cycles (faded) ...
     slope_weight=1,  # ... and their (faded) count: the mean slope ratio the bank's scale is corrected by
     small_slip_scale=1,  # last cycle's published scale (the peak force of this cycle's slope ratio; 0: none yet)
+    ran=1,  # 1: the filters ran last cycle (a coast only continues a running filter)
+    coast_time=1,  # s the filters have coasted through a silent sensor
     y=kf.N_Y,  # scratch: this cycle's measurements
     scratch=tb.SCRATCH_SIZE,  # the bank's scratch
     bank_out=tb.OUT_SIZE,  # the bank's outputs
@@ -62,6 +68,8 @@ STATE = Layout(
     ST_SLOPE_SUM,
     ST_SLOPE_WEIGHT,
     ST_SMALL_SLIP_SCALE,
+    ST_RAN,
+    ST_COAST_TIME,
     ST_Y,
     ST_SCRATCH,
     ST_BANK_OUT,
@@ -126,6 +134,7 @@ OUTPUTS = Layout(
     tyre_change=1,  # nats: the bank's change statistic (a neighbouring tyre explains the last cycles better)
     tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
     tyre_slope_ratio=1,  # the mean slope ratio of the cycles learned from (1: small slip; `_slope_ratio`)
+    ran=1,  # 1: the filters ran this cycle (z is theirs): on every sensor, or coasting through a silent one
 )
 (
     OUT_Z,
@@ -141,7 +150,15 @@ OUTPUTS = Layout(
     OUT_TYRE_CHANGE,
     OUT_TYRE_STIFFNESS,
     OUT_TYRE_SLOPE_RATIO,
+    OUT_RAN,
 ) = OUTPUTS.offsets
+
+# How long the filters coast on their own prediction of a silent sensor while the other is there. The steer is
+# the torque's main evidence but its prediction drifts slowly (the rates and a_y still pin the lean and the yaw);
+# without the rates the filter has the steer and a_y only, and the roll it runs on drifts within a second.
+# Beyond, a restart from the data costs less than the drift (docs/estimator.md, "Coasting through a silent sensor").
+MAX_STEER_COAST = 2.0  # s
+MAX_IMU_COAST = 0.5  # s
 
 TABLES = (
     ("grid", 1),
@@ -224,6 +241,8 @@ def lateral_stage(
 ) -> None:
     """One cycle. ``tables``/``tindex``: a packed buffer holding TABLES in order from row ``t0``."""
     run = cond[cnd.OUT_RUN] != 0.0
+    coast = _coasting(st, prm, run, inputs, cond)
+    filtering = run or coast
     if not run:
         st[ST_RUN_TIME] = 0.0
     else:
@@ -233,7 +252,7 @@ def lateral_stage(
     bank_out = st[ST_BANK_OUT : ST_BANK_OUT + tb.OUT_SIZE]
     kf_out = out[OUT_Z : OUT_Z + kf.N_Z]
     diverged = False
-    if run:
+    if filtering:
         C = v2(tables, tindex, t0 + T_C)
         delta = cond[cnd.OUT_STEER]
         r_ground = cond[cnd.OUT_YAW_RATE]
@@ -243,24 +262,24 @@ def lateral_stage(
         y_kf = st[ST_Y : ST_Y + kf.N_Y]
         # every measurement at the IMU's instant: the steer, read up to a cycle later or earlier, is carried back
         # with last cycle's steer rate (conditioning.steer_lead)
+        # a measurement that is not there this cycle (a held accelerometer, a sensor coasted through): the last
+        # published state's prediction of it (no innovation to speak of; no evidence about the tyres is taken)
+        steer_ok = run or inputs[inp.OUT_STEER_OK] != 0.0
+        rates_ok = run or inputs[inp.OUT_IMU_OK] != 0.0
         shift = cond[cnd.OUT_STEER_LEAD] * kf_out[kf.DELTA_DOT]
-        y_kf[0] = delta - shift if math.isfinite(shift) else delta
-        y_kf[1] = r_ground
-        y_kf[2] = p_rate
-        accel_trusted = inputs[inp.OUT_ACCEL_TRUSTED] != 0.0
-        attitude_ok = attitude[att.OUT_OK] != 0.0
-        # a measurement that is not there this cycle: the last published state's prediction of it (no innovation
-        # to speak of; and no evidence about the tyres is taken from such a cycle)
-        if accel_trusted:
-            y_kf[3] = cond[cnd.OUT_A_Y]
+        if steer_ok:
+            y_kf[0] = delta - shift if math.isfinite(shift) else delta
         else:
-            acc = 0.0
-            for c in range(kf.N_Z):
-                acc += C[3, c] * kf_out[c]
-            y_kf[3] = acc
+            y_kf[0] = _predicted(C, 0, kf_out)
+        y_kf[1] = r_ground if rates_ok else _predicted(C, 1, kf_out)
+        y_kf[2] = p_rate if rates_ok else _predicted(C, 2, kf_out)
+        accel_trusted = inputs[inp.OUT_ACCEL_TRUSTED] != 0.0
+        attitude_ok = attitude[att.OUT_OK] != 0.0 and rates_ok
+        y_kf[3] = cond[cnd.OUT_A_Y] if accel_trusted else _predicted(C, 3, kf_out)
         y_kf[4] = roll_prev if attitude_ok else kf_out[kf.PHI]
         observe = (
-            accel_trusted
+            run
+            and accel_trusted
             and attitude_ok
             and inputs[inp.OUT_RATES_OK] != 0.0
             and int(inputs[inp.OUT_REASONS]) == 0
@@ -339,6 +358,30 @@ def lateral_stage(
         out[OUT_TYRE_STIFFNESS + k] = scale * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
+    out[OUT_RAN] = 1.0 if filtering else 0.0
+    st[ST_RAN] = 1.0 if filtering and not diverged else 0.0
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _predicted(C: np.ndarray, row: int, z: np.ndarray) -> float:
+    """Measurement ``row`` as the state ``z`` predicts it (y = C z)."""
+    acc = 0.0
+    for c in range(kf.N_Z):
+        acc += C[row, c] * z[c]
+    return acc
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _coasting(st: np.ndarray, prm: np.ndarray, run: bool, inputs: np.ndarray, cond: np.ndarray) -> bool:
+    """The filters coast this cycle: they ran last cycle and only one of the steer encoder and the IMU's rates
+    is silent (above the model's speed), for at most that sensor's MAX_*_COAST. Counts the coast's time."""
+    steer_ok = inputs[inp.OUT_STEER_OK] != 0.0
+    rates_ok = inputs[inp.OUT_IMU_OK] != 0.0
+    if run or st[ST_RAN] == 0.0 or cond[cnd.OUT_SPEED_LOW] != 0.0 or steer_ok == rates_ok:
+        st[ST_COAST_TIME] = 0.0
+        return False
+    st[ST_COAST_TIME] += prm[P_DT]
+    return st[ST_COAST_TIME] <= (MAX_STEER_COAST if rates_ok else MAX_IMU_COAST)
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -427,6 +470,8 @@ def reset(st: np.ndarray, prm: np.ndarray) -> None:
     (a loop over the laid-out maximum wrote into the evidence of a smaller bank)."""
     st[ST_RUN_TIME] = 0.0
     st[ST_TYRE_EVIDENCE] = 0.0
+    st[ST_RAN] = 0.0
+    st[ST_COAST_TIME] = 0.0
     tb.restart_filters(_bank(st), _bank_params(prm))
 
 
