@@ -622,7 +622,7 @@ def test_slow_reload_runs_off_the_loop(monkeypatch, notify, tmp_path, ride_frame
     daemon.on_cycle = on_cycle
     _run(daemon, 2.5)
     assert daemon.reloads == 1
-    assert daemon.overruns - marks["overruns"] <= OverrunRule().limit
+    assert daemon.overruns - marks["overruns"] <= MAX_OVERRUNS  # a loaded machine's few, not the reload's 50
     _assert_pinged_throughout(notify, 2.5)
 
 
