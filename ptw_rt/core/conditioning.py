@@ -53,8 +53,9 @@ STATE = Layout(
     roll=1,  # rad, the published roll of the last cycle
     steer_zero_shift=1,  # rad, the learned steer-encoder zero error (subtracted from the encoder's angle)
     steer_zero_seconds=1,  # s of straight riding it was learned from (a restored value counts as learned)
+    rates_gap=1,  # 1 while the IMU's rates are stale: the derivative filters restart on the first fresh ones
 )
-ST_INIT, ST_DF, ST_ROLL, ST_STEER_ZERO_SHIFT, ST_STEER_ZERO_SECONDS = STATE.offsets
+ST_INIT, ST_DF, ST_ROLL, ST_STEER_ZERO_SHIFT, ST_STEER_ZERO_SECONDS, ST_RATES_GAP = STATE.offsets
 
 PARAMS = Layout(
     "P_",
@@ -262,9 +263,15 @@ def conditioning_stage(
         p_rate = raw[inp.RAW_P]
         r_ground = ground_yaw_rate(raw[inp.RAW_Q], raw[inp.RAW_R], roll_prev)
     delta = steer_angle(raw[inp.RAW_STEER], prm[P_STEER_ZERO], prm[P_STEER_CPR])
-    if st[ST_INIT] == 0.0:
-        st[ST_DF + 0] = r_ground
-        st[ST_DF + 2] = p_rate
+    # the derivatives start from the rates' first values, and again from the first new and sound ones after the
+    # rates were stale: the step from the held rates to the fresh ones read as a jerk, and its lever-arm term put
+    # a 0.3 s spike into a_y (the lateral filters' torque, restarted on it, read 20-50 N m off)
+    if inputs[inp.OUT_IMU_OK] == 0.0:
+        st[ST_RATES_GAP] = 1.0
+    elif st[ST_INIT] == 0.0 or (st[ST_RATES_GAP] != 0.0 and inputs[inp.OUT_RATES_OK] != 0.0):
+        st[ST_DF + 0], st[ST_DF + 1] = r_ground, 0.0
+        st[ST_DF + 2], st[ST_DF + 3] = p_rate, 0.0
+        st[ST_RATES_GAP] = 0.0
     r_dot = derivative_filter(st, ST_DF + 0, r_ground, prm[P_DERIV_OMEGA], dt)
     p_dot = derivative_filter(st, ST_DF + 2, p_rate, prm[P_DERIV_OMEGA], dt)
     a_y = lateral_accel_at_com(

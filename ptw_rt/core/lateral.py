@@ -240,7 +240,9 @@ def lateral_stage(
     cond: np.ndarray,
 ) -> None:
     """One cycle. ``tables``/``tindex``: a packed buffer holding TABLES in order from row ``t0``."""
-    run = cond[cnd.OUT_RUN] != 0.0
+    # a (re)start waits for rates that are this cycle's: after a silence the first frame waits for the next one to
+    # confirm it (`ptw_rt.core.inputs`), and filters started on the held rates took up the step as torque
+    run = cond[cnd.OUT_RUN] != 0.0 and (st[ST_RAN] != 0.0 or inputs[inp.OUT_RATES_OK] != 0.0)
     coast = _coasting(st, prm, run, inputs, cond)
     filtering = run or coast
     if not run:
