@@ -14,8 +14,9 @@ from ptw_rt.core import speed as spd
 from ptw_rt.core import tyre_bank as tb
 
 
-def _step(b, cond, accel=1.0, attitude_ok=1.0):
-    inputs = inp.OUTPUTS.vector({"accel_trusted": accel}, strict=False)
+def _step(b, cond, accel=1.0, attitude_ok=1.0, rates=1.0, steer_ok=1.0, imu_ok=1.0):
+    flags = {"accel_trusted": accel, "rates_ok": rates, "steer_ok": steer_ok, "imu_ok": imu_ok, "core_ok": 1.0}
+    inputs = inp.OUTPUTS.vector(flags, strict=False)
     speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
     attitude = att.OUTPUTS.vector({"ok": attitude_ok}, strict=False)
     lat.lateral_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, attitude, cond)
@@ -37,6 +38,45 @@ def test_straight_upright_ride_stays_at_zero_and_the_clock_runs(settings, design
     # the stage does not even see the diagnostics)
     out = _step(b, cnd.OUTPUTS.vector({"run": 0.0}, strict=False))
     assert out[lat.OUT_RUN_TIME] == 0.0 and not np.any(out[lat.OUT_Z : lat.OUT_Z + kf.N_Z])
+
+
+def test_a_start_waits_for_this_cycles_rates(settings, design):
+    """After a silence the first rates frame waits for the next to confirm it (`inputs`): the rates of that cycle
+    are the held ones, and filters started on them took the step as torque. The start waits one cycle."""
+    b = lat.STAGE.alone(settings, design)
+    cond = cnd.OUTPUTS.vector({"run": 1.0}, strict=False)
+    out = _step(b, cond, rates=0.0)
+    assert out[lat.OUT_RAN] == 0.0 and out[lat.OUT_RUN_TIME] == 0.0
+    out = _step(b, cond)
+    assert out[lat.OUT_RAN] == 1.0 and out[lat.OUT_RUN_TIME] == pytest.approx(0.01)
+    out = _step(b, cond, rates=0.0)  # running: a cycle without new rates goes on
+    assert out[lat.OUT_RAN] == 1.0 and out[lat.OUT_RUN_TIME] == pytest.approx(0.02)
+
+
+@pytest.mark.parametrize(("silent", "limit"), [("steer", lat.MAX_STEER_COAST), ("imu", lat.MAX_IMU_COAST)])
+def test_a_silent_sensor_is_coasted_through_for_its_limit(settings, design, silent, limit):
+    """The observers stopped (conditioning's run 0) by one silent sensor while the other is there: the filters
+    coast for the sensor's limit (the clock held at 0: nothing VALID), then stop; one cycle of both back restarts
+    the clock."""
+    b = lat.STAGE.alone(settings, design)
+    running = cnd.OUTPUTS.vector({"run": 1.0}, strict=False)
+    for _ in range(100):
+        _step(b, running)
+    flags = {"steer_ok": 0.0} if silent == "steer" else {"imu_ok": 0.0, "rates": 0.0}
+    stopped = cnd.OUTPUTS.vector({"run": 0.0}, strict=False)
+    n = int(round(limit / 0.01))
+    for _ in range(n):
+        out = _step(b, stopped, **flags)
+        assert out[lat.OUT_RAN] == 1.0 and out[lat.OUT_RUN_TIME] == 0.0
+    out = _step(b, stopped, **flags)
+    assert out[lat.OUT_RAN] == 0.0 and not np.any(out[lat.OUT_Z : lat.OUT_Z + kf.N_Z])
+    out = _step(b, running)
+    assert out[lat.OUT_RAN] == 1.0 and out[lat.OUT_RUN_TIME] == pytest.approx(0.01)
+    # both silent, or the speed below the model's: no coast
+    for stop in ({"steer_ok": 0.0, "imu_ok": 0.0, "rates": 0.0}, {}):
+        _step(b, running)
+        speed_low = cnd.OUTPUTS.vector({"run": 0.0, "speed_low": 0.0 if stop else 1.0}, strict=False)
+        assert _step(b, speed_low, **stop)[lat.OUT_RAN] == 0.0
 
 
 def test_a_steady_roll_measurement_is_followed(settings, design):

@@ -383,7 +383,8 @@ def _coasting(st: np.ndarray, prm: np.ndarray, run: bool, inputs: np.ndarray, co
         st[ST_COAST_TIME] = 0.0
         return False
     st[ST_COAST_TIME] += prm[P_DT]
-    return st[ST_COAST_TIME] <= (MAX_STEER_COAST if rates_ok else MAX_IMU_COAST)
+    limit = MAX_STEER_COAST if rates_ok else MAX_IMU_COAST
+    return st[ST_COAST_TIME] < limit + 0.5 * prm[P_DT]  # limit / dt cycles (a sum of dt drifts past the limit)
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
