@@ -125,50 +125,25 @@ def kalman_pair_step_at(
     fresh = st[s0 + INIT] == 0.0 or st[s1 + INIT] == 0.0
     _start(st, s0, y, roll_init)
     _start(st, s1, y, roll_init)
-    if fresh:  # settled on this first measurement before the first step (`SETTLE_STEPS`)
-        for _ in range(SETTLE_STEPS):
-            _step_pair(st, s0, s1, out0, out1, y, u, j, w, Phi, K0, K1, C, Gd, nl, d0, d1)
-    _step_pair(st, s0, s1, out0, out1, y, u, j, w, Phi, K0, K1, C, Gd, nl, d0, d1)
-
-
-@njit(cache=True, inline="always")
-def _step_pair(
-    st: np.ndarray,
-    s0: int,
-    s1: int,
-    out0: np.ndarray,
-    out1: np.ndarray,
-    y: np.ndarray,
-    u: float,
-    j: int,
-    w: float,
-    Phi: np.ndarray,
-    K0: np.ndarray,
-    K1: np.ndarray,
-    C: np.ndarray,
-    Gd: np.ndarray,
-    nl: np.ndarray,
-    d0: np.ndarray,
-    d1: np.ndarray,
-) -> None:
-    """Corrector and predictor of both filters of a pair (`kalman_pair_step_at`)."""
-    _correct(st, s0, out0, y, j, w, K0, C)
-    _correct(st, s1, out1, y, j, w, K1, C)
-    nonlinear_correction(d0, out0, u, nl)
-    nonlinear_correction(d1, out1, u, nl)
-    for a in range(N_Z):
-        acc0 = 0.0
-        acc1 = 0.0
-        for b in range(N_Z):
-            p = lerp(Phi, j, w, a, b)
-            acc0 += p * out0[b]
-            acc1 += p * out1[b]
-        for b in range(N_D):
-            g = lerp(Gd, j, w, a, b)
-            acc0 += g * d0[b]
-            acc1 += g * d1[b]
-        st[s0 + a] = acc0
-        st[s1 + a] = acc1
+    # a pair just started first settles on this measurement: the same step, `SETTLE_STEPS` more times
+    for _ in range(1 + SETTLE_STEPS if fresh else 1):
+        _correct(st, s0, out0, y, j, w, K0, C)
+        _correct(st, s1, out1, y, j, w, K1, C)
+        nonlinear_correction(d0, out0, u, nl)
+        nonlinear_correction(d1, out1, u, nl)
+        for a in range(N_Z):
+            acc0 = 0.0
+            acc1 = 0.0
+            for b in range(N_Z):
+                p = lerp(Phi, j, w, a, b)
+                acc0 += p * out0[b]
+                acc1 += p * out1[b]
+            for b in range(N_D):
+                g = lerp(Gd, j, w, a, b)
+                acc0 += g * d0[b]
+                acc1 += g * d1[b]
+            st[s0 + a] = acc0
+            st[s1 + a] = acc1
 
 
 @njit(cache=True, inline="always")
