@@ -262,14 +262,14 @@ def lateral_stage(
         roll_prev = cond[cnd.OUT_DEROLL]
         u = speed[spd.OUT_U]
         y_kf = st[ST_Y : ST_Y + kf.N_Y]
-        # every measurement at the IMU's instant: the steer, read up to a cycle later or earlier, is carried back
-        # with last cycle's steer rate (conditioning.steer_lead)
         # a measurement that is not there this cycle (a held accelerometer, a sensor coasted through): the last
         # published state's prediction of it (no innovation to speak of; no evidence about the tyres is taken)
         steer_ok = run or inputs[inp.OUT_STEER_OK] != 0.0
         rates_ok = run or inputs[inp.OUT_IMU_OK] != 0.0
-        shift = cond[cnd.OUT_STEER_LEAD] * kf_out[kf.DELTA_DOT]
         if steer_ok:
+            # every measurement at the IMU's instant: the steer, read up to a cycle later or earlier, is carried
+            # back with last cycle's steer rate (conditioning.steer_lead)
+            shift = cond[cnd.OUT_STEER_LEAD] * kf_out[kf.DELTA_DOT]
             y_kf[0] = delta - shift if math.isfinite(shift) else delta
         else:
             y_kf[0] = _predicted(C, 0, kf_out)
