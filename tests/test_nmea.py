@@ -135,6 +135,31 @@ def test_other_sentences_are_parsed_but_not_used(parser):
     assert parser.counters() == {"parsed": 2, "used": 0, "checksum_errors": 0, "garbage": 0}
 
 
+@pytest.mark.parametrize("knots", ["999999999999", "1e308", "25000"])
+def test_an_absurd_speed_a_receiver_sends_is_refused_at_the_edge_and_counted(parser, knots):
+    """The parser keeps a sentence's speed as sent (the checksum is right); the edge range-checks it against
+    GPS_Velocity's range in the DBC as it does a frame's, so the estimator never sees it and the input is counted
+    out of range (the daemon feeds the serial solutions through `CycleRunner.on_values`)."""
+    from ptw_rt.core.layout import S_GPS_SPEED
+    from ptw_rt.edge.cycle import build_runner
+    from ptw_rt.paths import DEFAULT_CONFIG
+    from ptw_rt.service.daemon import SERIAL_GPS_MESSAGE
+
+    fix = parser.feed(sentence(f"GPRMC,123519,A,4807.038,N,01131.000,E,{knots},084.4,230394,003.1,W,A"))
+    assert fix is not None and fix.speed_mps > 100.0
+    runner = build_runner(DEFAULT_CONFIG)
+    good = {"SpeedOverGround": 10.0, "CourseOverGround": 84.4, "FixType": 2.0}
+    runner.on_values(SERIAL_GPS_MESSAGE, 1.0, good)
+    runner.on_values(
+        SERIAL_GPS_MESSAGE,
+        1.1,
+        {"SpeedOverGround": fix.speed_mps, "CourseOverGround": fix.course_deg, "FixType": float(fix.fix_type)},
+    )
+    runner.tracker.fill(runner.sample, 1.105)
+    assert runner.sample[S_GPS_SPEED] == 10.0  # the last sound value, held
+    assert runner.tracker.summary()[SERIAL_GPS_MESSAGE]["out_of_range"] == 1
+
+
 def test_missing_pynmea2_is_a_user_facing_error(monkeypatch):
     monkeypatch.setattr(nmea, "pynmea2", None)
     for make in (nmea.NmeaParser, lambda: nmea.SerialGnssReader("/dev/ttyACM0", 9600)):
