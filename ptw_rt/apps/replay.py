@@ -57,6 +57,7 @@ from ptw_rt.edge.cycle import (
     build_runner,
     decode_block,
     drive_blocks,
+    shared_runner,
 )
 from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.errors import EXIT_OK, EXIT_PARTIAL, OutputError, UserFacingError, output_error
@@ -630,7 +631,9 @@ def replay_job(
         for target in (out, csv):
             if target is not None:
                 target.parent.mkdir(parents=True, exist_ok=True)
-        return replay_log(in_path, out, csv, config, design_file, max_gap=max_gap)
+        # the worker's config, design file and DBC loaded once, a runner of its own for this log (`shared_runner`)
+        runner = shared_runner(config, design_file)
+        return replay_log(in_path, out, csv, config, design_file, runner=runner, max_gap=max_gap)
     except Exception as exc:
         return _failure(in_path, exc)
 

@@ -150,6 +150,41 @@ def build_runner(
     return CycleRunner(settings, Estimator(settings, design), FrameCodec(dbc))
 
 
+# What `shared_runner` loaded in this process: {(config, design file, DBC identities): (settings, design, codec)}
+_LOADED: dict[tuple, tuple] = {}
+
+
+def _identity(path: Path) -> tuple:
+    """A file as `shared_runner` knows it: a file changed or replaced since it was loaded is another file."""
+    st = path.stat()
+    return (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino)
+
+
+def shared_runner(
+    config: str | Path, design_file: str | Path | None = None, dbc: str | Path = DEFAULT_DBC
+) -> CycleRunner:
+    """`build_runner` for a process that runs many logs or rides (a replay or evaluation worker): the config, the
+    design file and the DBC are loaded and checked once per process, not per log. Parsing them costs ~60 ms (YAML
+    ~19, design file ~19, DBC ~24 ms, measured 2026-11-29) against ~1.3 ms for a runner built from them: 2000
+    listed logs that did not exist took 63 s. Every call still returns a runner of its own (estimator, input
+    tracker and output counters from nothing, as `build_runner`'s), so a log's result never depends on what the
+    process ran before it. Keyed by the three files' identities (path, size, mtime, inode): a file changed
+    during the run is loaded again; one that cannot be read is left to `build_runner` to report."""
+    design_path = Path(design_file) if design_file else design_file_for(config)
+    try:
+        key = (_identity(Path(config)), _identity(design_path), _identity(Path(dbc)))
+    except OSError:
+        return build_runner(config, design_file, dbc)
+    parts = _LOADED.get(key)
+    if parts is None:
+        settings = load_settings(config)
+        parts = (settings, load_design_for(settings, design_path, config), FrameCodec(dbc))
+        _LOADED.clear()  # one run's files: a process keeps at most one set
+        _LOADED[key] = parts
+    settings, design, codec = parts
+    return CycleRunner(settings, Estimator(settings, design), codec)
+
+
 @dataclass(frozen=True)
 class SegmentBreak:
     """Where `drive_log` ended a segment: the log's clock jumped forward by more than ``max_gap`` ("gap") or

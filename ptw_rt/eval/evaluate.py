@@ -22,7 +22,7 @@ import numpy as np
 
 from ptw_rt.core import force_observers as fo
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table, used on every line
-from ptw_rt.edge.cycle import build_runner, drive_log
+from ptw_rt.edge.cycle import drive_log, shared_runner
 from ptw_rt.errors import UserFacingError
 from ptw_rt.output import emit
 from ptw_rt.paths import DEFAULT_CONFIG
@@ -152,7 +152,7 @@ def evaluate_ride(
     """Score one ride. `initial_stiffness_scale` = (front, rear): the estimator starts from the nominal
     tyres times these factors (a wrong start), if it offers `set_initial_stiffness_scale(front, rear)`;
     `result["initial_stiffness_scale"]` then says whether it was applied."""
-    runner = build_runner(config, design_file)
+    runner = shared_runner(config, design_file)  # a matrix's or a random set's worker loads the files once
     settings = runner.settings
     applied = None
     if initial_stiffness_scale is not None:
