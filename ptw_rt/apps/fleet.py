@@ -18,7 +18,7 @@ import math
 import os
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 from typing import Any
 
@@ -144,13 +144,26 @@ def run_jobs(
         on_done(index, result)
 
 
+# Jobs in flight on the local pool per worker: enough to keep every worker busy, few enough that a list of 200 000
+# logs does not hold 200 000 futures and their arguments at once (all submitted up front: 915 MB at the peak)
+IN_FLIGHT_PER_WORKER = 8
+
+
 def _completed(job, jobs, *, workers: int, dask: str | None) -> Iterator[tuple[int, Callable[[], Any]]]:
     if dask is None:
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(job, *args): i for i, args in enumerate(jobs)}
-            for fut in as_completed(futures):
-                yield futures[fut], fut.result
-        return
+            queued = iter(enumerate(jobs))
+            running: dict[Any, int] = {}
+            while True:
+                for i, args in queued:
+                    running[pool.submit(job, *args)] = i
+                    if len(running) >= IN_FLIGHT_PER_WORKER * workers:
+                        break
+                if not running:
+                    return
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    yield running.pop(fut), fut.result
     from dask.distributed import as_completed as dask_completed
 
     client, cluster = _dask_client(dask, workers)
