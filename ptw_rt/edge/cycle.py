@@ -176,11 +176,11 @@ def shared_runner(
     except OSError:
         return build_runner(config, design_file, dbc)
     parts = _LOADED.get(key)
-    if parts is None:
-        settings = load_settings(config)
-        parts = (settings, load_design_for(settings, design_path, config), FrameCodec(dbc))
+    if parts is None:  # loaded and checked as `build_runner` does: one way in, the same errors
+        runner = build_runner(config, design_path, dbc)
         _LOADED.clear()  # one run's files: a process keeps at most one set
-        _LOADED[key] = parts
+        _LOADED[key] = (runner.settings, runner.estimator.design, runner.codec)
+        return runner
     settings, design, codec = parts
     return CycleRunner(settings, Estimator(settings, design), codec)
 
