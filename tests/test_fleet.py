@@ -252,3 +252,40 @@ def test_the_local_pool_holds_a_bounded_number_of_logs_in_flight(monkeypatch):
         results[index] = result()
     assert results == {k: 10 * k for k in range(100)}
     assert count["peak"] <= fleet.IN_FLIGHT_PER_WORKER * 2
+
+
+def test_a_dask_cluster_gets_a_bounded_number_of_logs_in_flight(monkeypatch):
+    """The Dask path submitted every log of the list at once as well (a `--list` of 20 000: 561 MB at the peak): it
+    now keeps a bounded number per worker of the cluster submitted and not yet handed back, and every result comes
+    back under its own index."""
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import Client, LocalCluster
+
+    from ptw_rt.apps import fleet
+
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None)
+    client = Client(cluster)
+    count = {"submitted": 0, "handed_back": 0, "peak": 0}
+    submit_batch = client.map
+
+    def counting_map(*args, **kwargs):
+        futures = submit_batch(*args, **kwargs)
+        count["submitted"] += len(futures)
+        count["peak"] = max(count["peak"], count["submitted"] - count["handed_back"])
+        return futures
+
+    monkeypatch.setattr(client, "map", counting_map)
+    monkeypatch.setattr(fleet, "_dask_client", lambda address, workers: (client, cluster))
+    results = {}
+    for index, result in fleet._completed(_times_ten, [(k,) for k in range(300)], workers=1, dask="local"):
+        count["handed_back"] += 1
+        results[index] = result()
+    assert results == {k: 10 * k for k in range(300)}
+    assert count["submitted"] == 300
+    # a finished batch's successors are submitted before it is handed back (the cluster keeps working): at most
+    # twice the bound
+    assert count["peak"] <= 2 * fleet.DASK_IN_FLIGHT_PER_WORKER
+
+
+def _times_ten(k):
+    return 10 * k
