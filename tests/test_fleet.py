@@ -289,3 +289,28 @@ def test_a_dask_cluster_gets_a_bounded_number_of_logs_in_flight(monkeypatch):
 
 def _times_ten(k):
     return 10 * k
+
+
+def test_a_fleet_row_has_every_column_and_nothing_else():
+    """Rows are tuples in FLEET_COLUMNS order (kept per log instead of the whole summary): a key that is not a
+    column would shift every column after it, which the csv module's DictWriter used to refuse."""
+    from ptw_rt.apps import fleet
+
+    ok = {
+        "log": "a.log",
+        "cycles": 200,
+        "log_duration_s": 2.0,
+        "segments": 1,
+        "sensor_fault_cycles": 3,
+        "overruns": 0,
+        "wall_s": 0.1,
+        "modes": {"VALID": 150, "CONVERGING": 50},
+        "final": {"tyre_scale": 0.91234, "c_alpha_front": float("nan"), "stiffness_valid": True},
+    }
+    row = dict(zip(FLEET_COLUMNS, fleet.fleet_row(ok), strict=True))
+    assert row["status"] == "ok" and row["share_valid"] == 0.75 and row["share_converging"] == 0.25
+    assert row["tyre_scale"] == 0.9123 and row["c_alpha_front"] == "" and row["stiffness_valid"] == 1
+    failed = dict(
+        zip(FLEET_COLUMNS, fleet.fleet_row({"log": "b.log", "error": "b.log: CAN log not found"}), strict=True)
+    )
+    assert failed["status"] == "failed" and failed["error"] == "b.log: CAN log not found" and failed["cycles"] == ""

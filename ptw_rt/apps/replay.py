@@ -683,29 +683,36 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
     gc.freeze()
     progress = not getattr(args, "no_progress", False)
     failures = 0
-    results: dict[int, dict[str, Any]] = {}
+    # per log, as each finishes: its summary line and its fleet row, not the whole summary (a fleet of 200 000)
+    lines: dict[int, str] = {}
     if len(jobs) == 1:
         src, dst, csv = jobs[0]
         if getattr(args, "dask", None):
             # shipping one log to a cluster would only add the transfer: say so rather than ignore the option
             err.write("replay: one log is replayed in this process; --dask spreads several logs over a cluster\n")
         bar = Progress(1.0, label=f"replay {src.name}", stream=err, delay=0.5) if progress else None
-        results[0] = replay_log(src, dst, csv, config, design_file, progress=bar, max_gap=max_gap)
+        result = replay_log(src, dst, csv, config, design_file, progress=bar, max_gap=max_gap)
+        lines[0] = json.dumps(_short(result))
         if bar is not None:
             bar.finish()
     else:
         workers = worker_count(args.jobs, len(jobs))
         bar = Progress(len(jobs), label="replay", stream=err) if progress else None
+        rows: dict[int, tuple[Any, ...]] = {}
+        riding_s = 0.0
 
         def done(i: int, result: dict[str, Any]) -> None:
-            nonlocal failures
-            results[i] = result
+            nonlocal failures, riding_s
+            lines[i] = json.dumps(_short(result))
+            rows[i] = fleet.fleet_row(result)
             if "error" in result:
                 failures += 1
                 message = result["error"]
                 where = str(jobs[i][0])
                 line = message if message.startswith(where) else f"{where}: {message}"
                 err.write(("\n" if bar is not None and bar.tty else "") + f"error: {line}\n")
+            else:
+                riding_s += result["log_duration_s"]
             if bar is not None:
                 bar.step(jobs[i][0].name)
 
@@ -717,19 +724,16 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
             on_done=done,
             failure=lambda job, exc: _failure(job[0], exc),
         )
-        ordered = [results[i] for i in range(len(jobs))]
         try:
-            written = fleet.write_fleet_summary(fleet.fleet_rows(ordered), args.out)
+            written = fleet.write_fleet_summary([rows[i] for i in range(len(jobs))], args.out)
         except OSError as exc:
             raise _output_error(args.out / "fleet.csv", exc) from None
-        ok = [r for r in ordered if "error" not in r]
-        hours = sum(r["log_duration_s"] for r in ok) / 3600.0
         err.write(
-            f"fleet: {len(ok)} of {len(jobs)} logs replayed, {hours:.2f} h of riding, "
+            f"fleet: {len(jobs) - failures} of {len(jobs)} logs replayed, {riding_s / 3600.0:.2f} h of riding, "
             f"summary {', '.join(str(p) for p in written)}\n"
         )
-    for i in sorted(results):  # job order, not completion order: stable output
-        out.write(json.dumps(_short(results[i])) + "\n")
+    for i in sorted(lines):  # job order, not completion order: stable output
+        out.write(lines[i] + "\n")
     out.flush()
     if failures:
         err.write(f"replay: {failures} of {len(jobs)} logs failed (their summary lines name the error)\n")
