@@ -156,20 +156,29 @@ DASK_IN_FLIGHT_PER_WORKER = 64
 
 
 def _completed(job, jobs, *, workers: int, dask: str | None) -> Iterator[tuple[int, Callable[[], Any]]]:
+    """(index, result getter) of each job as it finishes, on the local pool or on the Dask cluster ``dask``."""
     if dask is None:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            queued = iter(enumerate(jobs))
-            running: dict[Any, int] = {}
-            while True:
-                for i, args in queued:
-                    running[pool.submit(job, *args)] = i
-                    if len(running) >= IN_FLIGHT_PER_WORKER * workers:
-                        break
-                if not running:
-                    return
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    yield running.pop(fut), fut.result
+        return _completed_locally(job, jobs, workers)
+    return _completed_on_dask(job, jobs, workers, dask)
+
+
+def _completed_locally(job, jobs, workers: int) -> Iterator[tuple[int, Callable[[], Any]]]:
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        queued = iter(enumerate(jobs))
+        running: dict[Any, int] = {}
+        while True:
+            for i, args in queued:
+                running[pool.submit(job, *args)] = i
+                if len(running) >= IN_FLIGHT_PER_WORKER * workers:
+                    break
+            if not running:
+                return
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in done:
+                yield running.pop(fut), fut.result
+
+
+def _completed_on_dask(job, jobs, workers: int, dask: str) -> Iterator[tuple[int, Callable[[], Any]]]:
     from dask.distributed import as_completed as dask_completed
 
     client, cluster = _dask_client(dask, workers)
@@ -203,7 +212,7 @@ def _completed(job, jobs, *, workers: int, dask: str | None) -> Iterator[tuple[i
 
 def fleet_row(r: dict[str, Any]) -> tuple[Any, ...]:
     """One log's row, in FLEET_COLUMNS order, from its replay summary (``replay_log``'s, or a failure's). A tuple,
-    made as each log finishes, so that a fleet keeps ~0.3 kB a log for its summary instead of the whole summary."""
+    made as each log finishes: with its summary line, ~1 kB a log is what a fleet keeps, not the whole summary."""
     row: dict[str, Any] = dict.fromkeys(FLEET_COLUMNS, "")
     row["log"] = r.get("log", "")
     if "error" in r:
