@@ -3,12 +3,14 @@ fleet summary. Every output must be byte-identical to the single-process replay 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -314,3 +316,44 @@ def test_a_fleet_row_has_every_column_and_nothing_else():
         zip(FLEET_COLUMNS, fleet.fleet_row({"log": "b.log", "error": "b.log: CAN log not found"}), strict=True)
     )
     assert failed["status"] == "failed" and failed["error"] == "b.log: CAN log not found" and failed["cycles"] == ""
+
+
+def test_a_dask_scheduler_lost_mid_run_fails_the_logs_it_had_not_run(monkeypatch):
+    """A scheduler that died mid-run: the client cancels what the scheduler had (those logs fail) and reconnects in
+    vain; a batch given to it meanwhile never ran, and the command waited for ever. Now every log comes back, the
+    ones never given to the cluster with one reason, within DASK_LOST_AFTER_S of the loss."""
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import Client, LocalCluster
+
+    from ptw_rt.apps import fleet
+
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None)
+    client = Client(cluster, timeout="2s")
+    # the cluster is closed here, not by the fleet (closing a LocalCluster whose scheduler died waits for it)
+    monkeypatch.setattr(fleet, "_dask_client", lambda address, workers: (client, None))
+    monkeypatch.setattr(fleet, "DASK_LOST_AFTER_S", 2.0)
+    outcomes = {}
+    start = time.monotonic()
+    try:
+        for index, result in fleet._completed(_slowly_times_ten, [(k,) for k in range(300)], workers=1, dask="x"):
+            try:
+                outcomes[index] = result()
+            except Exception as exc:  # noqa: BLE001 - what each log's failure is, below
+                outcomes[index] = exc
+            if len(outcomes) == 20:
+                cluster.sync(cluster.scheduler.close)
+        took = time.monotonic() - start
+    finally:
+        with contextlib.suppress(Exception):
+            cluster.close(timeout=2)
+    assert sorted(outcomes) == list(range(300))
+    finished = [k for k, v in outcomes.items() if isinstance(v, int)]
+    assert len(finished) >= 20 and all(outcomes[k] == 10 * k for k in finished)
+    lost = [v for v in outcomes.values() if isinstance(v, UserFacingError)]
+    assert lost and all("was lost during the run" in str(v) for v in lost)
+    assert took < 20.0
+
+
+def _slowly_times_ten(k):
+    time.sleep(0.02)
+    return 10 * k

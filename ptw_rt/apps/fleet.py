@@ -18,6 +18,7 @@ import itertools
 import math
 import os
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
@@ -178,6 +179,13 @@ def _completed_locally(job, jobs, workers: int) -> Iterator[tuple[int, Callable[
                 yield running.pop(fut), fut.result
 
 
+# A scheduler lost mid-run: the client cancels what it had given it (those logs fail) and tries to reconnect; what
+# it is given meanwhile never runs, and the command waited for ever on it. So a batch goes out only while the client
+# is connected, and if it has not reconnected within this long the logs not yet given fail with one reason.
+DASK_LOST_AFTER_S = DASK_CONNECT_TIMEOUT_S + 5.0
+DASK_POLL_S = 0.5
+
+
 def _completed_on_dask(job, jobs, workers: int, dask: str) -> Iterator[tuple[int, Callable[[], Any]]]:
     from dask.distributed import as_completed as dask_completed
 
@@ -189,9 +197,15 @@ def _completed_on_dask(job, jobs, workers: int, dask: str) -> Iterator[tuple[int
         queued = iter(enumerate(jobs))
         running: dict[Any, int] = {}
         pending = dask_completed()
+        lost = False
 
         def submit(count: int) -> None:
-            chunk = list(itertools.islice(queued, count))
+            nonlocal lost
+            deadline = time.monotonic() + DASK_LOST_AFTER_S
+            while not lost and client.status != "running":
+                lost = time.monotonic() >= deadline
+                time.sleep(DASK_POLL_S)
+            chunk = [] if lost else list(itertools.islice(queued, count))
             if chunk:
                 # one message for the batch; pure=False: two logs with the same arguments are still two tasks
                 columns = zip(*(args for _, args in chunk), strict=True)  # job(*args) per log: one list per argument
@@ -204,10 +218,21 @@ def _completed_on_dask(job, jobs, workers: int, dask: str) -> Iterator[tuple[int
             submit(len(batch))  # before handing these back: the cluster keeps working while the caller writes
             for fut in batch:
                 yield running.pop(fut), fut.result
+        if lost:
+            reason = UserFacingError(f"the Dask scheduler {dask} was lost during the run; not replayed")
+            for i, _ in queued:
+                yield i, _raiser(reason)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _raiser(exc: BaseException) -> Callable[[], Any]:
+    def result() -> Any:
+        raise exc
+
+    return result
 
 
 def fleet_row(r: dict[str, Any]) -> tuple[Any, ...]:
