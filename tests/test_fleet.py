@@ -357,3 +357,30 @@ def test_a_dask_scheduler_lost_mid_run_fails_the_logs_it_had_not_run(monkeypatch
 def _slowly_times_ten(k):
     time.sleep(0.02)
     return 10 * k
+
+
+def test_a_worker_that_dies_fails_the_logs_in_flight_and_a_fresh_pool_replays_the_rest():
+    """A worker killed mid-run (the OOM killer, a log that crashes the interpreter) broke the local pool: the next
+    submission raised BrokenProcessPool out of the command, a traceback. Now the logs in flight fail with that reason
+    and a fresh pool takes the rest."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    from ptw_rt.apps import fleet
+
+    outcomes = {}
+    for index, result in fleet._completed(_dies_at_30, [(k,) for k in range(120)], workers=2, dask=None):
+        try:
+            outcomes[index] = result()
+        except BrokenProcessPool as exc:
+            outcomes[index] = exc
+    assert sorted(outcomes) == list(range(120))
+    assert isinstance(outcomes[30], BrokenProcessPool)
+    in_flight = 2 * fleet.IN_FLIGHT_PER_WORKER
+    assert all(outcomes[k] == 10 * k for k in range(30 + in_flight + 1, 120))  # the rest, on a fresh pool
+
+
+def _dies_at_30(k):
+    if k == 30:
+        os._exit(9)
+    time.sleep(0.005)
+    return 10 * k

@@ -19,8 +19,9 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
@@ -164,16 +165,32 @@ def _completed(job, jobs, *, workers: int, dask: str | None) -> Iterator[tuple[i
 
 
 def _completed_locally(job, jobs, workers: int) -> Iterator[tuple[int, Callable[[], Any]]]:
+    queued: Iterator[tuple[int, tuple]] = iter(enumerate(jobs))
+    while True:
+        unsent = yield from _completed_in_one_pool(job, queued, workers)
+        if unsent is None:
+            return
+        # a worker died (killed, out of memory): the logs it had in flight failed; a fresh pool takes the rest
+        queued = itertools.chain([unsent], queued)
+
+
+def _completed_in_one_pool(job, queued, workers: int) -> Generator[tuple[int, Callable[[], Any]], None, Any]:
+    """Run `queued` on one pool until it is done (None) or breaks: then the job it could not take."""
+    unsent = None
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        queued = iter(enumerate(jobs))
         running: dict[Any, int] = {}
         while True:
-            for i, args in queued:
-                running[pool.submit(job, *args)] = i
-                if len(running) >= IN_FLIGHT_PER_WORKER * workers:
-                    break
+            if unsent is None:
+                for i, args in queued:
+                    try:
+                        running[pool.submit(job, *args)] = i
+                    except BrokenProcessPool:
+                        unsent = (i, args)
+                        break
+                    if len(running) >= IN_FLIGHT_PER_WORKER * workers:
+                        break
             if not running:
-                return
+                return unsent
             done, _ = wait(running, return_when=FIRST_COMPLETED)
             for fut in done:
                 yield running.pop(fut), fut.result
