@@ -481,14 +481,21 @@ def test_missed_cycles_cost(tmp_path):
 QUIET_HOST_ATTEMPTS = 3
 
 
-def _on_a_quiet_host(run_once, host_missed) -> object:
-    """``run_once()`` until ``host_missed(result)`` is 0 (at most QUIET_HOST_ATTEMPTS runs); its result."""
-    counts = []
+def _on_a_quiet_host(run_once, host_missed, excess=None) -> object:
+    """``run_once()`` until ``host_missed(result)`` is 0 (at most QUIET_HOST_ATTEMPTS runs); its result. With
+    ``excess``, a quiet run whose ``excess(result)`` is above 0 (what the test judges, beyond its bound: a VM stall
+    can land in the judged window too) is run again as well, and the quiet run of least excess is returned: a
+    fault that costs the excess in every run still fails."""
+    counts, quiet = [], []
     for _ in range(QUIET_HOST_ATTEMPTS):
         result = run_once()
         counts.append(host_missed(result))
         if counts[-1] == 0:
-            return result
+            if excess is None or excess(result) <= 0:
+                return result
+            quiet.append(result)
+    if quiet:
+        return min(quiet, key=excess)
     pytest.skip(
         f"host too busy to judge the loop's timing: it missed cycles where nothing was injected in each of "
         f"{QUIET_HOST_ATTEMPTS} runs ({counts})"
@@ -582,27 +589,17 @@ def test_reload_of_a_large_config_misses_no_cycle(notify, tmp_path, ride_frames)
 
         daemon.on_cycle = on_cycle
         _run(daemon, 4.5, Feeder(channel, ride_frames, duration=5.0))
-        return daemon, trace, asked, overruns[1:], swapped, overruns[1] - overruns[0] if len(overruns) > 1 else 0
+        missed_before = overruns[1] - overruns[0] if len(overruns) > 1 else 0
+        return daemon, trace, asked, overruns[1:], swapped, missed_before, list(notify.messages)
 
     def missed_after(r) -> int:
         return r[3][1] - r[3][0] if len(r[3]) == 2 else 10**6
 
     # a VM the host starves stalls the loop now and then (4 cycles once in a full run, in the second after the
-    # request, the second before quiet): the run is repeated, and the quiet run that missed least is judged. A
+    # request, the second before quiet): such a run is repeated, and the quiet run that missed least is judged. A
     # reload back in the loop misses ~20 cycles in every run, so it still fails.
-    runs = []  # (run_once's result, what it told systemd)
-    for _ in range(QUIET_HOST_ATTEMPTS):
-        result = run_once()
-        runs.append((result, list(notify.messages)))
-        if result[-1] == 0 and missed_after(result) <= OverrunRule().limit:
-            break
-    quiet = [run for run in runs if run[0][-1] == 0]
-    if not quiet:
-        pytest.skip(
-            f"host too busy to judge the loop's timing: cycles missed before the reload in all {len(runs)} runs"
-        )
-    result, notify.messages[:] = min(quiet, key=lambda run: missed_after(run[0]))
-    daemon, trace, asked, overruns, swapped, _ = result
+    result = _on_a_quiet_host(run_once, lambda r: r[5], excess=lambda r: missed_after(r) - OverrunRule().limit)
+    daemon, trace, asked, overruns, swapped, _, notify.messages[:] = result  # what that run told systemd
     assert asked and daemon.reloads == 1 and daemon.reload_failures == 0
     # in the loop this reload cost ~20 missed cycles (0.2 s of parsing); off it, none: up to 2 are tolerated for a
     # machine loaded by other jobs (2 keep VALID by the overrun rule, so the mode check below still holds)
