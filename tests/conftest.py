@@ -25,6 +25,34 @@ def fresh_design(settings):
     return make_design(settings)
 
 
+# A test of the loop's own timing needs a host that lets it keep its period: a run in which the loop missed cycles,
+# or the test's own frames came late, where the test injected nothing (another job had the CPUs) runs again, up to
+# this many times in all; a host that starves every run skips the test with the figure (`ptw-rt bench` measures the
+# loop's timing on its own).
+QUIET_HOST_ATTEMPTS = 3
+
+
+def on_a_quiet_host(run_once, host_missed, excess=None) -> object:
+    """``run_once()`` until ``host_missed(result)`` is 0 (at most QUIET_HOST_ATTEMPTS runs); its result. With
+    ``excess``, a quiet run whose ``excess(result)`` is above 0 (what the test judges, beyond its bound: a VM stall
+    can land in the judged window too) is run again as well, and the quiet run of least excess is returned: a
+    fault that costs the excess in every run still fails."""
+    counts, quiet = [], []
+    for _ in range(QUIET_HOST_ATTEMPTS):
+        result = run_once()
+        counts.append(host_missed(result))
+        if counts[-1] == 0:
+            if excess is None or excess(result) <= 0:
+                return result
+            quiet.append(result)
+    if quiet:
+        return min(quiet, key=excess)
+    pytest.skip(
+        f"host too busy to judge the loop's timing: in each of {QUIET_HOST_ATTEMPTS} runs it disturbed what the "
+        f"test did not inject (missed cycles or late frames: {counts})"
+    )
+
+
 VM_TOO_SLOW = "VM too slow to judge timing"  # how a timing skip of tests/test_vcan_integration.py starts
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from conftest import on_a_quiet_host
 from test_daemon import Feeder, _channel, _settings
 
 from ptw_rt.core.layout import (
@@ -475,33 +476,6 @@ def test_missed_cycles_cost(tmp_path):
     assert 0.1 < np.degrees(deviation) < 1.0, np.degrees(deviation)
 
 
-# A test of the loop's own missed cycles needs a host that lets it keep its period: a run in which the loop missed
-# cycles where the test injected nothing (another job had the CPUs) runs again, up to this many times in all; a host
-# that starves every run skips the test with the figure (`ptw-rt bench` measures the loop's timing on its own).
-QUIET_HOST_ATTEMPTS = 3
-
-
-def _on_a_quiet_host(run_once, host_missed, excess=None) -> object:
-    """``run_once()`` until ``host_missed(result)`` is 0 (at most QUIET_HOST_ATTEMPTS runs); its result. With
-    ``excess``, a quiet run whose ``excess(result)`` is above 0 (what the test judges, beyond its bound: a VM stall
-    can land in the judged window too) is run again as well, and the quiet run of least excess is returned: a
-    fault that costs the excess in every run still fails."""
-    counts, quiet = [], []
-    for _ in range(QUIET_HOST_ATTEMPTS):
-        result = run_once()
-        counts.append(host_missed(result))
-        if counts[-1] == 0:
-            if excess is None or excess(result) <= 0:
-                return result
-            quiet.append(result)
-    if quiet:
-        return min(quiet, key=excess)
-    pytest.skip(
-        f"host too busy to judge the loop's timing: it missed cycles where nothing was injected in each of "
-        f"{QUIET_HOST_ATTEMPTS} runs ({counts})"
-    )
-
-
 def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frames):
     def run_once():
         channel = _channel()
@@ -532,7 +506,7 @@ def test_isolated_overrun_keeps_valid_repeated_ones_degrade(tmp_path, ride_frame
         _, trace, _ = result
         return next(n for t, _, n, _ in trace if t >= 2.4) - next(n for t, _, n, _ in trace if t >= 0.5)
 
-    daemon, trace, degraded_reasons = _on_a_quiet_host(run_once, host_missed)
+    daemon, trace, degraded_reasons = on_a_quiet_host(run_once, host_missed)
     before = [m for t, m, *_ in trace if 2.0 <= t < 2.5]
     # a failure names the reason bits of every cycle that was not VALID (an overrun must be the only one)
     isolated = [(m, r) for t, m, _, r in trace if 2.5 <= t < 3.9 and m != MODE_VALID]
@@ -598,7 +572,7 @@ def test_reload_of_a_large_config_misses_no_cycle(notify, tmp_path, ride_frames)
     # a VM the host starves stalls the loop now and then (4 cycles once in a full run, in the second after the
     # request, the second before quiet): such a run is repeated, and the quiet run that missed least is judged. A
     # reload back in the loop misses ~20 cycles in every run, so it still fails.
-    result = _on_a_quiet_host(run_once, lambda r: r[5], excess=lambda r: missed_after(r) - OverrunRule().limit)
+    result = on_a_quiet_host(run_once, lambda r: r[5], excess=lambda r: missed_after(r) - OverrunRule().limit)
     daemon, trace, asked, overruns, swapped, _, notify.messages[:] = result  # what that run told systemd
     assert asked and daemon.reloads == 1 and daemon.reload_failures == 0
     # in the loop this reload cost ~20 missed cycles (0.2 s of parsing); off it, none: up to 2 are tolerated for a
