@@ -6,7 +6,8 @@ Exit codes of ``ptw-rt`` (README, "Exit codes"):
 * 1 ``EXIT_PARTIAL``: done, but not everything succeeded (``replay`` of several logs: some failed, each named in
   an ``error:`` line and its summary line; ``design --check``: a check failed; ``monitor``/``demo``: bad frames).
 * 2 ``EXIT_USER``: a problem the user must fix, nothing done (configuration, design file, an input file, an
-  argument). ``ptw-rt.service`` does not restart on it (``RestartPreventExitStatus=2``).
+  argument; ``evaluate`` whose worker process died, since its tables need every ride). ``ptw-rt.service`` does not
+  restart on it (``RestartPreventExitStatus=2``).
 * 69 ``EXIT_UNAVAILABLE`` (sysexits' EX_UNAVAILABLE): ``run`` cannot open the CAN bus at start-up (no such
   interface, link down). systemd restarts the daemon: the interface may come later.
 * 74 ``EXIT_OUTPUT`` (sysexits' EX_IOERR): an output cannot be written (``replay``'s, whatever its format;

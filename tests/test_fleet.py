@@ -226,6 +226,7 @@ def test_the_local_pool_holds_a_bounded_number_of_logs_in_flight(monkeypatch):
     result still comes back under its own index."""
     from concurrent.futures import Future
 
+    from ptw_rt import parallel
     from ptw_rt.apps import fleet
 
     count = {"submitted": 0, "handed_back": 0, "peak": 0}
@@ -234,11 +235,8 @@ def test_the_local_pool_holds_a_bounded_number_of_logs_in_flight(monkeypatch):
         def __init__(self, max_workers):
             self.max_workers = max_workers
 
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
+        def shutdown(self, wait=True, cancel_futures=False):
+            pass
 
         def submit(self, fn, *args):
             count["submitted"] += 1
@@ -247,13 +245,13 @@ def test_the_local_pool_holds_a_bounded_number_of_logs_in_flight(monkeypatch):
             fut.set_result(fn(*args))
             return fut
 
-    monkeypatch.setattr(fleet, "ProcessPoolExecutor", RecordingPool)
+    monkeypatch.setattr(parallel, "ProcessPoolExecutor", RecordingPool)
     results = {}
     for index, result in fleet._completed(lambda k: 10 * k, [(k,) for k in range(100)], workers=2, dask=None):
         count["handed_back"] += 1
         results[index] = result()
     assert results == {k: 10 * k for k in range(100)}
-    assert count["peak"] <= fleet.IN_FLIGHT_PER_WORKER * 2
+    assert count["peak"] <= parallel.IN_FLIGHT_PER_WORKER * 2
 
 
 def test_a_dask_cluster_gets_a_bounded_number_of_logs_in_flight(monkeypatch):
@@ -380,6 +378,18 @@ def test_a_worker_that_dies_fails_the_logs_in_flight_and_a_fresh_pool_replays_th
     # the logs in flight when the pool broke fail with it (how many the pool took before it noticed depends on the
     # host's load); the last ones run on a fresh pool
     assert all(outcomes[k] == 10 * k for k in range(250, 300)), failed
+
+
+def test_an_evaluation_whose_worker_dies_is_one_line():
+    """The evaluation's map (the matrix, random rides) needs every ride: a worker that dies there is one line naming
+    the ride (it was a BrokenProcessPool traceback out of `ptw-rt evaluate`)."""
+    from ptw_rt.errors import UserFacingError
+    from ptw_rt.parallel import map_in_processes
+
+    with pytest.raises(UserFacingError, match=r"^a worker process died with ride \d+ in flight \(killed") as info:
+        map_in_processes(_dies_at_30, list(range(300)), 2, None, lambda k: f"ride {k}")
+    assert "\n" not in str(info.value)
+    assert map_in_processes(_times_ten, list(range(40)), 2, None, str) == [10 * k for k in range(40)]
 
 
 def _dies_at_30(k):

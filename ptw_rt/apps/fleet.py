@@ -19,15 +19,14 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable, Generator, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from ptw_rt.core.layout import MODE_NAMES
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.logformats import SNIFF_BYTES, sniff
+from ptw_rt.parallel import completed_in_processes
 from ptw_rt.untrusted import UntrustedFileError, decode_utf8, read_bounded, short_text
 
 __all__ = ["FLEET_COLUMNS", "fleet_row", "read_list_file", "run_jobs", "write_fleet_summary"]
@@ -147,9 +146,6 @@ def run_jobs(
         on_done(index, result)
 
 
-# Jobs in flight on the local pool per worker: enough to keep every worker busy, few enough that a list of 200 000
-# logs does not hold 200 000 futures and their arguments at once (all submitted up front: 915 MB at the peak)
-IN_FLIGHT_PER_WORKER = 8
 # On a Dask cluster each task's round trip through the scheduler costs milliseconds: more in flight keeps its
 # workers busy, and a finished batch's successors go in one message. A `--list` of 20 000 missing logs on 2 local
 # workers: all at once 109 s, 561 MB at the peak; one by one, 8 per worker, 172 s; in batches of 64 per worker, 112 s,
@@ -160,40 +156,8 @@ DASK_IN_FLIGHT_PER_WORKER = 64
 def _completed(job, jobs, *, workers: int, dask: str | None) -> Iterator[tuple[int, Callable[[], Any]]]:
     """(index, result getter) of each job as it finishes, on the local pool or on the Dask cluster ``dask``."""
     if dask is None:
-        return _completed_locally(job, jobs, workers)
+        return completed_in_processes(job, jobs, workers)
     return _completed_on_dask(job, jobs, workers, dask)
-
-
-def _completed_locally(job, jobs, workers: int) -> Iterator[tuple[int, Callable[[], Any]]]:
-    queued: Iterator[tuple[int, tuple]] = iter(enumerate(jobs))
-    while True:
-        unsent = yield from _completed_in_one_pool(job, queued, workers)
-        if unsent is None:
-            return
-        # a worker died (killed, out of memory): the logs it had in flight failed; a fresh pool takes the rest
-        queued = itertools.chain([unsent], queued)
-
-
-def _completed_in_one_pool(job, queued, workers: int) -> Generator[tuple[int, Callable[[], Any]], None, Any]:
-    """Run `queued` on one pool until it is done (None) or breaks: then the job it could not take."""
-    unsent = None
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        running: dict[Any, int] = {}
-        while True:
-            if unsent is None:
-                for i, args in queued:
-                    try:
-                        running[pool.submit(job, *args)] = i
-                    except BrokenProcessPool:
-                        unsent = (i, args)
-                        break
-                    if len(running) >= IN_FLIGHT_PER_WORKER * workers:
-                        break
-            if not running:
-                return unsent
-            done, _ = wait(running, return_when=FIRST_COMPLETED)
-            for fut in done:
-                yield running.pop(fut), fut.result
 
 
 # A scheduler lost mid-run: the client cancels what it had given it (those logs fail) and tries to reconnect; what
