@@ -898,7 +898,10 @@ def consistency_monitor(st: np.ndarray, prm: np.ndarray, out: np.ndarray, riding
     if st[ST_INCONSISTENT_FOR] <= 0.0:
         st[ST_REACQUIRED] = 0.0
     elif riding:  # an alarm raised at a stop re-learns once riding
-        if st[ST_REACQUIRED] == 0.0:
+        # ... and out of a hard corner: in one a slide moves the innovations as a bias would, and biases reopened
+        # there took it (a healthy ride's alarm at 22 deg of lean near the grip: yaw-gyro bias 0.025 rad/s off and
+        # the roll 4 deg off after the corner, docs/estimator.md)
+        if st[ST_REACQUIRED] == 0.0 and _corner_excess(st[ST_X + X_PHI], prm) == 0.0:
             _reacquire_biases(st, prm)
             st[ST_REACQUIRED] = 1.0
         if st[ST_REACQUIRED] == 1.0 and st[ST_QUIET] >= QUIET_CYCLES:  # the roll once a slide is over
