@@ -86,17 +86,24 @@ def test_an_innovation_beyond_the_gate_is_not_applied_but_reaches_the_monitor():
     assert st[att.ST_NU] == 0.0
 
 
-def test_an_alarm_in_a_slide_reopens_the_roll_only_once_the_lateral_force_is_explained_again():
-    """The biases are reopened at the alarm; the roll, whose reopened spread widens the next lateral-force update's
-    gate, waits for QUIET_CYCLES of explained lateral force: in a slide the specific force is one no lean explains."""
+def _monitor_at_an_alarm():
+    """(params, state, its covariance P as a view, outputs): a filter sure of everything (P = 1e-6 I) whose
+    lateral-force innovations' running mean is ten white sd (0.5 s of 10 ms cycles) off: an alarm."""
     prm = att.build_params(load_settings(DEFAULT_CONFIG), SimpleNamespace(sample_time=0.01))
     st = att.new_state()
     P = st[att.ST_P : att.ST_P + att.N_X * att.N_X].reshape((att.N_X, att.N_X))
     np.fill_diagonal(P, 1e-6)
     out = np.zeros(att.OUT_SIZE)
     out[att.OUT_OK] = 1.0
+    st[att.ST_MEAN_LATERAL] = 1.0
+    return prm, st, P, out
+
+
+def test_an_alarm_in_a_slide_reopens_the_roll_only_once_the_lateral_force_is_explained_again():
+    """The biases are reopened at the alarm; the roll, whose reopened spread widens the next lateral-force update's
+    gate, waits for QUIET_CYCLES of explained lateral force: in a slide the specific force is one no lean explains."""
+    prm, st, P, out = _monitor_at_an_alarm()
     out[att.OUT_NU_LATERAL] = 11.0  # a slide: the lateral force far beyond the gate, cycle after cycle
-    st[att.ST_MEAN_LATERAL] = 1.0  # ten white sd of the running mean (0.5 s of 10 ms cycles): an alarm
     att.consistency_monitor(st, prm, out, True)
     assert out[att.OUT_INCONSISTENT] == 1.0
     assert P[att.X_BP, att.X_BP] > 1e-5 and P[att.X_BAY, att.X_BAY] > 1e-3  # the biases at once
@@ -115,13 +122,7 @@ def test_an_alarm_in_a_hard_corner_reopens_the_biases_once_the_lean_is_back_insi
     """In a hard corner a slide moves the innovations as a bias would: biases reopened there take the slide (a
     healthy ride's yaw-gyro bias went 0.025 rad/s off, docs/estimator.md). The alarm holds them until the lean
     balances no more than `sideslip_dead_zone`."""
-    prm = att.build_params(load_settings(DEFAULT_CONFIG), SimpleNamespace(sample_time=0.01))
-    st = att.new_state()
-    P = st[att.ST_P : att.ST_P + att.N_X * att.N_X].reshape((att.N_X, att.N_X))
-    np.fill_diagonal(P, 1e-6)
-    out = np.zeros(att.OUT_SIZE)
-    out[att.OUT_OK] = 1.0
-    st[att.ST_MEAN_LATERAL] = 1.0  # an alarm
+    prm, st, P, out = _monitor_at_an_alarm()
     st[att.ST_X + att.X_PHI] = math.radians(22.0)  # g tan(22 deg) = 4.0 m/s^2, beyond the 3 m/s^2 dead zone
     for _ in range(50):
         att.consistency_monitor(st, prm, out, True)
