@@ -185,9 +185,19 @@ def _roll_series(codec, received, t0):
     return np.array(out)
 
 
+def _late_bus_inputs(result) -> int:
+    """Timeouts of the inputs on the bus (IMU, encoder) beyond the one each gets when the player stops."""
+    inputs = result[3].health()["inputs"]
+    return sum(max(0, inputs[name]["timeouts"] - 1) for name in ("IMU_Rates", "IMU_Accel", "Steer_Encoder"))
+
+
 def test_serial_gnss_matches_can_gps(codec, ride_frames, tmp_path):
-    _, rx_can, ev_can, d_can = _ride(codec, ride_frames, tmp_path, serial=False)
-    _, rx_ser, ev_ser, d_ser = _ride(codec, ride_frames, tmp_path, serial=True)
+    def run_once():
+        return _ride(codec, ride_frames, tmp_path, serial=False), _ride(codec, ride_frames, tmp_path, serial=True)
+
+    # a host that starves the players makes the IMU or the encoder time out in either run: run both again
+    runs = on_a_quiet_host(run_once, lambda r: _late_bus_inputs(r[0]) + _late_bus_inputs(r[1]))
+    (_, rx_can, ev_can, d_can), (_, rx_ser, ev_ser, d_ser) = runs
     can_roll = _roll_series(codec, rx_can, ev_can["t0"])
     ser_roll = _roll_series(codec, rx_ser, ev_ser["t0"])
     settled = (ser_roll[:, 0] >= SETTLE_S) & (ser_roll[:, 0] <= min(RIDE_S, can_roll[-1, 0]))
@@ -205,12 +215,6 @@ def test_serial_gnss_matches_can_gps(codec, ride_frames, tmp_path):
     g = d_ser.health()["gnss"]
     assert g["used"] >= 10 * (RIDE_S - 0.5) and g["checksum_errors"] == 0 and g["disconnects"] == 0
     assert d_ser.health()["inputs"]["GPS_Velocity"]["frames"] == g["used"]
-
-
-def _late_bus_inputs(result) -> int:
-    """Timeouts of the inputs on the bus (IMU, encoder) beyond the one each gets when the player stops."""
-    inputs = result[3].health()["inputs"]
-    return sum(max(0, inputs[name]["timeouts"] - 1) for name in ("IMU_Rates", "IMU_Accel", "Steer_Encoder"))
 
 
 def test_unplugged_receiver_degrades_within_3_cycles_and_recovers(codec, ride_frames, tmp_path):
