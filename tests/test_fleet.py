@@ -397,3 +397,24 @@ def _dies_at_30(k):
         os._exit(9)
     time.sleep(0.01)
     return 10 * k
+
+
+def _marks_its_start(directory, k):
+    (Path(directory) / str(k)).touch()
+    time.sleep(0.3)
+    return k
+
+
+def test_a_caller_that_stops_early_cancels_the_jobs_not_yet_started(tmp_path):
+    """The evaluation stops at a dead worker's first result, Ctrl-C stops a fleet: the pool then waits only for the
+    jobs already running, not for the rest of what it had been given (IN_FLIGHT_PER_WORKER per worker)."""
+    from ptw_rt import parallel
+
+    jobs = [(str(tmp_path), k) for k in range(100)]
+    results = parallel.completed_in_processes(_marks_its_start, jobs, 2)
+    next(results)
+    results.close()  # the pool is shut down here
+    started = len(list(tmp_path.iterdir()))
+    # running or already handed to a worker's queue (2 workers, one call queued beyond them) when the first
+    # finished; all of the 16 in flight would start without the cancel
+    assert started <= 8 < parallel.IN_FLIGHT_PER_WORKER * 2, started
