@@ -53,6 +53,16 @@ def on_a_quiet_host(run_once, host_missed, excess=None) -> object:
     )
 
 
+BUS_INPUTS = ("IMU_Rates", "IMU_Accel", "Steer_Encoder")  # the inputs a test's player sends on the bus
+
+
+def timeouts_not_injected(daemon, injected: dict[str, int]) -> int:
+    """Timeouts of the bus inputs beyond the ones the test caused (`injected`, per input; none where not named): a
+    host that starved the test's player (it shares the interpreter with the daemon) made those."""
+    inputs = daemon.health()["inputs"]
+    return sum(max(0, inputs[name]["timeouts"] - injected.get(name, 0)) for name in BUS_INPUTS)
+
+
 VM_TOO_SLOW = "VM too slow to judge timing"  # how a timing skip of tests/test_vcan_integration.py starts
 
 

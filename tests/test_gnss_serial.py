@@ -21,7 +21,7 @@ import uuid
 import can
 import numpy as np
 import pytest
-from conftest import on_a_quiet_host
+from conftest import BUS_INPUTS, on_a_quiet_host, timeouts_not_injected
 
 from ptw_rt.core.layout import E_MODE, MODE_DEGRADED, MODE_VALID, MSG_GPS
 from ptw_rt.io.dbc import FrameCodec
@@ -186,9 +186,8 @@ def _roll_series(codec, received, t0):
 
 
 def _late_bus_inputs(result) -> int:
-    """Timeouts of the inputs on the bus (IMU, encoder) beyond the one each gets when the player stops."""
-    inputs = result[3].health()["inputs"]
-    return sum(max(0, inputs[name]["timeouts"] - 1) for name in ("IMU_Rates", "IMU_Accel", "Steer_Encoder"))
+    """Timeouts of the inputs on the bus beyond the one each gets when the player stops."""
+    return timeouts_not_injected(result[3], dict.fromkeys(BUS_INPUTS, 1))
 
 
 def test_serial_gnss_matches_can_gps(codec, ride_frames, tmp_path):
