@@ -383,7 +383,6 @@ def test_a_worker_that_dies_fails_the_logs_in_flight_and_a_fresh_pool_replays_th
 def test_an_evaluation_whose_worker_dies_is_one_line():
     """The evaluation's map (the matrix, random rides) needs every ride: a worker that dies there is one line naming
     the ride (it was a BrokenProcessPool traceback out of `ptw-rt evaluate`)."""
-    from ptw_rt.errors import UserFacingError
     from ptw_rt.parallel import map_in_processes
 
     with pytest.raises(UserFacingError, match=r"^a worker process died with ride \d+ in flight \(killed") as info:
