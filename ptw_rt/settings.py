@@ -233,6 +233,8 @@ ESTIMATOR_SCHEMA = Section(
                 # the filters whose states are published: factors on the front and rear tyre forces' process noise
                 # (their typical magnitude) over the evidence filters' (docs/estimator.md, "Published states")
                 "published_force_noise": (NumberList(Number("", ge=1, le=1000), min_len=2, max_len=2), (1.0, 1.0)),
+                # ... and a factor on their rider torque's random walk (`rider_torque_rate`)
+                "published_torque_noise": (Number("", ge=1, le=100), 1.0),
             },
         ),
         "force_observer_yaw_bound": Number("rad/s^3", ge=0.01, le=1e4),
@@ -405,6 +407,7 @@ class KalmanTuning:
     roll_noise: float  # rad: error of the kinematic attitude filter's roll, fused as a measurement
     # the publishing filters' tyre forces (front, rear): factors on their process noise, freer of the tyre model
     published_force_noise: tuple[float, float] = (1.0, 1.0)
+    published_torque_noise: float = 1.0  # ... and on their rider torque's random walk
 
 
 @dataclass(frozen=True)

@@ -126,9 +126,12 @@ def kalman_pair_step_at(
     _start(st, s0, y, roll_init)
     _start(st, s1, y, roll_init)
     # a pair just started first settles on this measurement: the same step, `SETTLE_STEPS` more times
-    for _ in range(1 + SETTLE_STEPS if fresh else 1):
+    # (both with the evidence filter's gain: the publishing filter's freer torque and forces would settle onto a
+    # mid-manoeuvre measurement as if it were a steady turn, farther from the truth)
+    settle = SETTLE_STEPS if fresh else 0
+    for n in range(1 + settle):
         _correct(st, s0, out0, y, j, w, K0, C)
-        _correct(st, s1, out1, y, j, w, K1, C)
+        _correct(st, s1, out1, y, j, w, K0 if n < settle else K1, C)
         nonlinear_correction(d0, out0, u, nl)
         nonlinear_correction(d1, out1, u, nl)
         for a in range(N_Z):

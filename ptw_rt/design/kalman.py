@@ -62,12 +62,18 @@ def design_point(
 
 
 def design_point_with_innovation(
-    p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning, force_noise: tuple[float, float] = (1.0, 1.0)
+    p: VehicleParameters,
+    u: float,
+    dt: float,
+    tuning: KalmanTuning,
+    force_noise: tuple[float, float] = (1.0, 1.0),
+    torque_noise: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(Phi, K, Gd, S) at speed u: z+ = z + K (y - C z); z_next = Phi z+ + Gd d; S = C P C' + R, the
     covariance of the innovation y - C z (what the tyre bank's likelihoods need). `force_noise` scales the
     front and rear tyre forces' process noise (their typical magnitude): the tyre bank's publishing filters
-    (`fusion_filter.published_force_noise`) let the forces stray further from the tyre model.
+    (`fusion_filter.published_force_noise`) let the forces stray further from the tyre model, and `torque_noise`
+    (`published_torque_noise`) their rider torque walk faster.
 
     d are the generalised forces by which the nonlinear vehicle differs from the linear model on the
     lateral, yaw, roll and steer rows (`ptw_rt.core.kalman.nonlinear_correction`), held over the step:
@@ -83,7 +89,7 @@ def design_point_with_innovation(
     scale = STATE_SCALE.copy()
     scale[FORCE_STATES] *= force_noise  # the tyre forces' freedom from the tyre model (front, rear)
     Q[:8, :8] = np.diag(tuning.process_noise * scale**2 * dt)
-    Q[TAU, TAU] = tuning.rider_torque_rate**2 * dt
+    Q[TAU, TAU] = (torque_noise * tuning.rider_torque_rate) ** 2 * dt
     R = np.diag(
         [
             tuning.steer_noise**2,

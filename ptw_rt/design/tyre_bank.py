@@ -54,7 +54,9 @@ def design_bank(
             gd.append(Gd)
             sinv.append(np.linalg.inv(S))
             logdet.append(np.linalg.slogdet(S)[1])
-            Phi_pub, K, Gd_pub, _ = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning, published)
+            Phi_pub, K, Gd_pub, _ = kalman.design_point_with_innovation(
+                pk, float(u), dt, kalman_tuning, published, kalman_tuning.published_torque_noise
+            )
             # the runtime steps both filters with one Phi and Gd (core.kalman.kalman_pair_step_at): a raise, not an
             # assert, so that `python -O` cannot write a design file whose publishing filters run the wrong model
             if not (np.array_equal(Phi_pub, Phi) and np.array_equal(Gd_pub, Gd)):
