@@ -355,7 +355,6 @@ def test_a_hypothesis_that_joins_the_window_takes_its_neighbours_evidence_while_
     assert out[tb.OUT_MAP_SCALE] == pytest.approx(1.0 / 1.3**2, rel=0.01)
 
 
-
 @pytest.mark.slow
 def test_the_publishing_filters_faster_torque_follows_a_busy_rider_better(tmp_path):
     """`fusion_filter.published_torque_noise` (x1.5): most of the published torque's error is lag (the encoder's
