@@ -29,7 +29,9 @@ the likelihoods above, and its **publishing** filter, the same vehicle with the 
 scaled by `fusion_filter.published_force_noise` (design: ptw_rt.design.tyre_bank). The evidence needs the
 tyre model's tight link from slip to force (that is what tells tyres apart); the published torque and forces
 are better where the forces follow the measured a_y and yaw when the tyres leave the model (near the grip
-limit: `mu_drop` on μ 0.85, torque error 16.4 -> 13.7 % of the peak, docs/estimator.md).
+limit: `mu_drop` on μ 0.85, torque error 16.4 -> 13.7 % of the peak, docs/estimator.md), and with its rider
+torque's random walk ×`fusion_filter.published_torque_noise`: the published torque lags less (its error is mostly
+lag), while the evidence filters keep the slower walk that keeps their innovations about the tyres.
 
 Outputs: the operating posterior's mixture of the publishing filters' states (what the lateral-dynamics
 filter publishes: the learned tyres are the ones the published torque and forces come from), the scale estimate

@@ -11,7 +11,8 @@ their innovations.
 Each hypothesis also has a publishing filter: the same vehicle and measurements, its tyre forces' process
 noise scaled by `fusion_filter.published_force_noise` (front, rear), so the published forces and torque
 follow the measured a_y and yaw where the tyres leave the linear model (near the grip limit, a payload the
-file does not describe); the evidence keeps the model's tighter filters, which tell tyres apart.
+file does not describe), and its rider torque's random walk by `published_torque_noise` (less lag); the evidence
+keeps the model's tighter filters, which tell tyres apart.
 
 Tables (H hypotheses, G grid speeds; hypothesis-major, so rows h*G .. h*G+G-1 are hypothesis h):
   tb_scale (H,), tb_Phi (H*G, 9, 9), tb_K (H*G, 9, 5), tb_Gd (H*G, 9, 4), tb_Sinv (H*G, 5, 5),
