@@ -244,7 +244,8 @@ def test_the_published_states_come_from_the_publishing_filters_and_the_evidence_
     assert np.abs(rear).max() > 1.0  # N: the published rear force is another filter's
     # on the linear model both filters are right: the freer one's rear force stays within its noise
     assert np.sqrt(np.mean(rear[500:] ** 2)) < 50.0
-    # and their rider torque walks faster (`published_torque_noise`): less lag, with the evidence untouched
+    # and their rider torque walks faster (`published_torque_noise`; the lag it shortens on a simulated ride:
+    # `test_the_publishing_filters_faster_torque_follows_a_busy_rider_better`)
     assert s.estimator.kalman.published_torque_noise > 1.0
     assert np.abs(z_freer[:, ck.TAU] - z_own[:, ck.TAU]).max() > 0.05  # N m
 
