@@ -105,9 +105,10 @@ TYRE_BANK_SCHEMA = Section(
         "restored_sd": (Number("", ge=0.01, le=2), 0.15),
         "consistency_window": (Number("s", ge=0.05, le=60), 2.0),
         "fast_consistency_window": (Number("s", ge=0.01, le=10), 0.1),
-        # the small-slip stiffness learns below this lean: a road of mu 0.5 then uses <= 30 % of its grip, where a
-        # Magic-Formula tyre's secant slope is within 3 % of its small-slip one (docs/estimator.md, "Tyres")
-        "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.15),
+        # the small-slip stiffness learns below this lean: a road of mu 0.5 then uses <= 35 % of its grip, where the
+        # slope at the working point corrects the evidence (`lateral._slope_ratio`); 0.15 rad before the correction,
+        # 0.175 since it: a changed road followed sooner (docs/estimator.md, "The learning range's end, again")
+        "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.175),
         # ... but the published tyres count as tested (`valid_untested_time`, `settle_learning_time`) only by learning
         # below this lean: near the learning range's end on a wet road the tyres work at 25-35 % of their grip, where
         # their slope is 9-16 % below the small-slip one, and `mu_drop`'s riders, who never come more upright after
