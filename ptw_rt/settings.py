@@ -40,6 +40,11 @@ ATTITUDE_SCHEMA = Section(
         # in a hard corner (its lean balancing a lateral acceleration g tan(roll) beyond `sideslip_dead_zone`) the
         # sideslip moves faster near the grip limit: the drive of dv_y/dt grows as sqrt(1 + (excess / this)^2)
         "sideslip_accel_noise_ref": (Number("m/s^2", ge=0.01, le=100), 1.0),
+        # a yaw acceleration r' at speed u drives the sideslip by about k u^2 |r'| (k: the rear axle's load over its
+        # cornering stiffness, 0.006 s^2/m for the file's scooter); the sideslip's noise grows with this x u^2 |r'| as
+        # with a hard corner. Half of k: at k the quick lane changes' roll lost 0.02 deg on average (docs/estimator.md,
+        # "The sideslip in a quick change of yaw")
+        "sideslip_compliance": (Number("s^2/m", ge=0, le=1), 0.003),
         "sideslip_dead_zone": (Number("m/s^2", ge=0), 3.0),
         "lateral_accel_noise": (Number("m/s^2", ge=1e-3, le=10), 0.3),
         "pitch_rate_noise": (Number("rad/s", ge=1e-5, le=1), 0.01),
@@ -491,6 +496,7 @@ class AttitudeTuning:
     sideslip_accel_time: float
     sideslip_time: float
     sideslip_accel_noise_ref: float
+    sideslip_compliance: float
     sideslip_dead_zone: float
     lateral_accel_noise: float
     pitch_rate_noise: float

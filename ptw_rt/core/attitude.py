@@ -92,6 +92,7 @@ STATE = Layout(
     clean_run=1,  # consecutive cycles without corrupt input
     burst_biases=N_BIASES,  # the biases (b_p, b_q, b_r, b_ay) as the current burst found them (only updates move them)
     burst_roll_moved=1,  # rad, what the measurement updates have moved the roll by since the burst began
+    yaw_accel=1,  # rad/s^2, the ground yaw rate's derivative, low-passed over YAW_ACCEL_TIME (the sideslip's drive)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -116,6 +117,7 @@ STATE = Layout(
     ST_CLEAN_RUN,
     ST_BURST_BIASES,
     ST_BURST_ROLL_MOVED,
+    ST_YAW_ACCEL,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -130,6 +132,9 @@ GYRO_SATURATED = GYRO_FULL_SCALE - 1e-3  # one count of the frame's 0.0001 rad/s
 # m/s^2: the most lateral acceleration a tyre can give (~1.2 g); what scales the sideslip's noise is bounded by it,
 # so no roll (near 90 deg, tan grows without bound) can blow the covariance up
 MAX_LATERAL_ACCEL = 12.0
+# s: the low pass of the ground yaw acceleration that drives the sideslip's noise (a central difference of the gyro
+# alone is ~0.2 rad/s^2 of noise)
+YAW_ACCEL_TIME = 0.1
 # The accelerometer's specific force is trusted for the lateral-force and the gravity constraints only while its
 # magnitude is one a riding vehicle has (braking at 1 g beside gravity is 1.4 g; a pothole's spike is not a
 # measurement of the lean): outside, that cycle's accelerometer is not used (a garbage sample of 4 m/s^2 that
@@ -179,6 +184,7 @@ PARAMS = Layout(
     sideslip_accel_time=1,  # s, correlation time of a_v
     sideslip_time=1,  # s, mean reversion of v_y
     sideslip_accel_ref=1,  # m/s^2: a_v's drive grows as sqrt(1 + (excess / this)^2) (slides near the grip limit)
+    sideslip_compliance=1,  # s^2/m: a yaw acceleration r' at speed u drives the sideslip by this x u^2 |r'|
     sideslip_dead_zone=1,  # m/s^2 of g tan(roll) below which the two hard-corner terms stay off (`_corner_excess`)
     course_sideslip_per_accel=1,  # rad/(m/s^2): steady sideslip taken as course noise, per m/s^2 of that excess
     r_lateral=1,  # m/s^2, lateral specific-force noise (sensor + unmodelled)
@@ -213,6 +219,7 @@ PARAMS = Layout(
     A_SIDESLIP_ACCEL_TIME,
     A_SIDESLIP_TIME,
     A_SIDESLIP_ACCEL_REF,
+    A_SIDESLIP_COMPLIANCE,
     A_SIDESLIP_DEAD_ZONE,
     A_COURSE_SIDESLIP_PER_ACCEL,
     A_R_LATERAL,
@@ -320,6 +327,7 @@ def attitude_params(
     prm[A_SIDESLIP_ACCEL_TIME] = tuning.sideslip_accel_time
     prm[A_SIDESLIP_TIME] = tuning.sideslip_time
     prm[A_SIDESLIP_ACCEL_REF] = tuning.sideslip_accel_noise_ref
+    prm[A_SIDESLIP_COMPLIANCE] = tuning.sideslip_compliance
     prm[A_SIDESLIP_DEAD_ZONE] = tuning.sideslip_dead_zone
     prm[A_COURSE_SIDESLIP_PER_ACCEL] = tuning.course_sideslip_per_accel
     prm[A_R_LATERAL] = tuning.lateral_accel_noise
@@ -423,6 +431,7 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     st[ST_PSI_INIT] = 0.0
     st[ST_REJECTED] = 0.0
     st[ST_QUIET] = 0.0
+    st[ST_YAW_ACCEL] = 0.0
     for k in range(MAX_LATENCY_CYCLES):
         st[ST_PSI_HIST + k] = 0.0
     st[ST_INIT] = 1.0
@@ -478,11 +487,13 @@ def attitude_step(
     course_new: bool,
     standstill: bool,
     saturated: bool = False,
+    rates_trusted: bool = True,
 ) -> None:
     """One cycle. p, q, r: body rates [rad/s]; f_y, f_z: body specific force [m/s^2]; u: forward speed and
     u_sd its standard deviation [m/s]; course [rad] valid when course_new (a fresh GPS fix at speed);
     standstill: the vehicle is known to stand still (zero rates and sideslip); saturated: a gyro reads its full
-    scale (GYRO_FULL_SCALE: the rate integrated is a bound, not the rate)."""
+    scale (GYRO_FULL_SCALE: the rate integrated is a bound, not the rate); rates_trusted: no burst of corrupt input
+    is under way (the rates may be garbage that passed the checks: they must not open the sideslip's covariance)."""
     dt = prm[A_DT]
     g = prm[A_G]
     h = prm[A_IMU_HEIGHT]
@@ -529,9 +540,13 @@ def attitude_step(
         phidd1 = (p - prev[PREV_P2]) / (2.0 * dt)
         rg_now = (q - bq) * s + (r - br) * c
         rgd1 = (rg_now - prev[PREV_RG2]) / (2.0 * dt)
+        if prev[PREV_RATES_OK2] != 0.0 and not saturated and rates_trusted:
+            st[ST_YAW_ACCEL] += min(dt / YAW_ACCEL_TIME, 1.0) * (rgd1 - st[ST_YAW_ACCEL])
     else:
         phidd1 = 0.0
         rgd1 = 0.0
+    if not rates_trusted:
+        st[ST_YAW_ACCEL] = 0.0
     # the accelerometer's constraints need the previous cycle's rates: the turn's u r, the rotation axis, the
     # lever-arm terms; held ones (a frozen or corrupt IMU_Rates frame) would pin the roll to the lean of the moment
     # they froze (`sensor_faults` seeds 3 / 7: 4.8 / 5.8 deg off around a 0.5 s freeze in a corner; integrating the
@@ -686,7 +701,12 @@ def attitude_step(
     P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
     lat_ratio = _corner_excess(x[X_PHI], prm) / prm[A_SIDESLIP_ACCEL_REF]
-    P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * (1.0 + lat_ratio * lat_ratio) * dt
+    # ... and in a quick change of yaw at speed: the slip angles follow the forces, v_y' ~ (l_r - u^2 m_r / C_r) r'
+    # (the 100 km/h lane change of a heavier rider: a sideslip acceleration of ~2 m/s^2 the Markov model's
+    # stationary 0.6 m/s^2 did not allow, read as a bias: docs/estimator.md, "The sideslip in a quick change of yaw")
+    yaw_drive = min(prm[A_SIDESLIP_COMPLIANCE] * u * u * abs(st[ST_YAW_ACCEL]), MAX_LATERAL_ACCEL)
+    yaw_ratio = yaw_drive / prm[A_SIDESLIP_ACCEL_REF]
+    P[X_AV, X_AV] += prm[A_Q_SIDESLIP_ACCEL] ** 2 * (1.0 + lat_ratio * lat_ratio + yaw_ratio * yaw_ratio) * dt
     P[X_VY, X_VY] += 1e-6 * dt
     # heading increments for the GPS latency (newest first)
     for k in range(MAX_LATENCY_CYCLES - 1, 0, -1):
@@ -800,6 +820,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         inputs[inp.OUT_COURSE_NEW] != 0.0 and speed[spd.OUT_GPS_DOUBTED] == 0.0,  # a doubted receiver's course too
         standstill,
         saturated,
+        not (corrupt or st[ST_CORRUPT_RUN] > 0.0),
     )
     if corrupt or st[ST_CORRUPT_RUN] > 0.0:  # within a burst (its clean gaps and first clean cycle included)
         st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]
