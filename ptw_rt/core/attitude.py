@@ -799,6 +799,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
     force = math.sqrt(raw[inp.RAW_AX] ** 2 + raw[inp.RAW_AY] ** 2 + raw[inp.RAW_AZ] ** 2)
     accel_plausible = ACCEL_TRUSTED_MIN_G * prm[A_G] <= force <= ACCEL_TRUSTED_MAX_G * prm[A_G]
     corrupt = (reasons_now & _CORRUPT_INPUT) != 0
+    in_burst = corrupt or st[ST_CORRUPT_RUN] > 0.0  # its clean gaps and first clean cycle included
     if corrupt and st[ST_CORRUPT_RUN] == 0.0:  # a burst begins: where it found the biases, before its data
         for k in range(N_BIASES):
             st[ST_BURST_BIASES + k] = st[ST_X + X_BP + k]
@@ -820,9 +821,9 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         inputs[inp.OUT_COURSE_NEW] != 0.0 and speed[spd.OUT_GPS_DOUBTED] == 0.0,  # a doubted receiver's course too
         standstill,
         saturated,
-        not (corrupt or st[ST_CORRUPT_RUN] > 0.0),
+        not in_burst,
     )
-    if corrupt or st[ST_CORRUPT_RUN] > 0.0:  # within a burst (its clean gaps and first clean cycle included)
+    if in_burst:
         st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]
     if corrupt:
         st[ST_CORRUPT_RUN] += 1.0
