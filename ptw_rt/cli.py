@@ -69,6 +69,35 @@ def _worker_count(text: str) -> int:
     return n
 
 
+MAX_SEEDS = 64
+MAX_SEED = 2**32 - 1
+
+
+def _seed_list(text: str) -> list[int | None]:
+    """--seeds: comma-separated noise seeds, `own` for each scenario's own (argparse prints the error, exit 2)."""
+    items = text.split(",")
+    if not 1 <= len(items) <= MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"1 to {MAX_SEEDS} comma-separated noise seeds, not {len(items)}")
+    seeds: list[int | None] = []
+    for item in items:
+        item = item.strip()
+        if item == "own":
+            seed = None
+        else:
+            try:
+                seed = int(item)
+            except ValueError:
+                seed = -1
+            if not 0 <= seed <= MAX_SEED:
+                raise argparse.ArgumentTypeError(
+                    f"a noise seed is `own` or a whole number 0 to {MAX_SEED}, not {item[:40]!r}"
+                )
+        if seed in seeds:
+            raise argparse.ArgumentTypeError(f"noise seed {item!r} listed twice")
+        seeds.append(seed)
+    return seeds
+
+
 def _design(args) -> int:
     from ptw_rt.design.build import run_design
 
@@ -263,6 +292,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --matrix or --random: worker processes (default: every core this process may use)",
     )
     p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
+    p.add_argument(
+        "--seeds",
+        type=_seed_list,
+        default=None,
+        metavar="S,S,...",
+        help="with --matrix: the matrix once per noise seed (own: each scenario's own), every ride in one pool,"
+        " and what each seed misses; with --markdown the first seed's document and the others' summary",
+    )
     p.add_argument("--perturb", action="append", default=[], metavar="KEY=VALUE", help="plant perturbation")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle + estimator YAML")
     p.add_argument("--design-file", type=Path, default=None, help=DESIGN_FILE_HELP)

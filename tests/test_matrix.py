@@ -247,6 +247,70 @@ def test_reduced_matrix_returns_every_metric():
     assert md.startswith("# Estimator results") and "Fusion AHRS" in md and "peer" in md
 
 
+def test_seeds_summary_counts_each_seeds_misses_and_the_payloads_share():
+    """`--seeds`: per seed, the cells that miss a target and the matrix-wide misses; per target, over all seeds."""
+    good = [_cell(), _cell("dlc_100", ours=0.3, peer=0.6), _cell("urban", "mass +50 kg", ours=0.2, peer=0.4)]
+    own = {"targets": mx.check_targets(copy.deepcopy(good)), "wrong_start": {"worst_cornering_s": 5.0}}
+    worse = copy.deepcopy(good)
+    worse[0] = _cell(ours=0.8, peer=0.5)  # slalom_30 / nominal loses to the peer, and the mean ratio goes above 0.7
+    worse[2] = _cell("urban", "mass +50 kg", ours=0.2, peer=0.4, err=(12, 15))  # the payload's stiffness mean
+    other = {"targets": mx.check_targets(worse), "wrong_start": {"worst_cornering_s": None}}
+    summary = mx.seeds_summary([None, 211], [own, other])
+    first, second = summary["per_seed"]
+    assert first["seed"] == "own" and first["missed_cells"] == [] and first["matrix_targets_missed"] == []
+    assert second["seed"] == "211"
+    assert second["missed_cells"] == [
+        "slalom_30 / nominal: roll_le_peer",
+        "urban / mass +50 kg: stiffness_valid_mean_le_10pct",
+    ]
+    assert second["missed_with_payload"] == 1
+    assert second["matrix_targets_missed"] == ["roll_mean_ratio_to_peer_le_0.7"]
+    assert summary["missed"] == 2 and summary["missed_with_payload"] == 1
+    assert summary["per_target"]["roll_le_peer"] == {"cells": 6, "missed": 1, "missed_with_payload": 0}
+    assert summary["per_target"]["stiffness_valid_mean_le_10pct"]["missed_with_payload"] == 1
+    assert summary["matrix_targets"]["roll_mean_ratio_to_peer_le_0.7"] == {"matrices": 2, "missed": 1}
+    text = mx.seeds_text(summary)
+    assert "211" in text and "urban / mass +50 kg: stiffness_valid_mean_le_10pct" in text
+    assert "cells missing a target: 2 over 2 matrices, 1 of them mass +50 kg" in text
+
+
+def test_matrices_on_several_seeds_are_each_seeds_own():
+    """One pool for every seed's rides (run longest first), each seed's matrix put back together in order: the
+    first is the one `run_matrix` gives for that seed, the second differs by its noise alone."""
+    pytest.importorskip("imufusion")
+    scenarios, variants = ["dlc_50", "slalom_30"], [("nominal", ())]
+    alone = mx.run_matrix(scenarios, variants, seed=5, workers=1, wrong_start=False, progress=False)
+    both = mx.run_matrices([5, 6], scenarios, variants, workers=1, wrong_start=False, progress=False)
+    assert [[c["scenario"] for c in r["cells"]] for r in both] == [scenarios, scenarios]
+    assert [c["metrics"] for c in both[0]["cells"]] == [c["metrics"] for c in alone["cells"]]
+    assert both[1]["cells"][0]["metrics"]["roll_rmse_deg"] != both[0]["cells"][0]["metrics"]["roll_rmse_deg"]
+    summary = mx.seeds_summary([5, 6], both)
+    assert [row["seed"] for row in summary["per_seed"]] == ["5", "6"]
+    md = mx.matrix_markdown(both[0], summary, [5, 6])
+    assert "--matrix --markdown --seeds 5,6 > docs/results.md" in md and "## The matrix on other noise seeds" in md
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [("1,x", "not 'x'"), ("3,3", "listed twice"), ("-1", "not '-1'"), (",".join(["1"] * 65), "1 to 64")],
+)
+def test_a_bad_seed_list_is_one_line(value, message, capsys):
+    from ptw_rt.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["evaluate", "--matrix", "--seeds", value])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_seeds_and_seed_together_are_refused(capsys):
+    from ptw_rt.cli import main
+
+    assert main(["evaluate", "--matrix", "--seeds", "own,3", "--seed", "4"]) == 2
+    assert "drop --seed" in capsys.readouterr().err
+
+
 def test_progress_plain_lines_when_not_a_terminal():
     buf = io.StringIO()
     p = mx.Progress(3, stream=buf, every=1e9)
