@@ -73,6 +73,20 @@ def test_the_summary_names_a_broken_promise_and_the_command_that_replays_it():
     assert text.count("BROKEN") == 2 and "--seed 44" in text
 
 
+def test_a_ride_whose_rider_fell_is_counted_apart_in_the_torque_figure():
+    """A simulated fall 1.6 s into the scoring left a route at 64.9 % of the torque's peak (random routes set 2403):
+    the summary says how many rides fell and the largest figure of those that did not."""
+    rides = [_ride(), _ride(seed=43, torque_pct_of_peak=12.0), _ride(seed=44, torque_pct_of_peak=64.9, crashed_at=6.6)]
+    s = rr.summarise(rides)
+    assert s["crashed"] == 1
+    assert s["torque"]["largest_pct_of_peak"] == 64.9 and s["torque"]["largest_pct_of_peak_upright"] == 12.0
+    text = rr.summary_text({"generator_seed": 0, "workers": 1, "wall_s": 1.0, "summary": s})
+    assert "largest 64.9 % (12.0 % on the 2 whose simulated rider did not fall)" in text
+    assert "rides whose simulated rider fell (scored until the fall): 1" in text
+    quiet = rr.summary_text({"generator_seed": 0, "workers": 1, "wall_s": 1.0, "summary": rr.summarise(rides[:2])})
+    assert "fell" not in quiet and "did not fall" not in quiet
+
+
 def test_the_command_runs_rides_and_prints_json():
     proc = subprocess.run(
         [sys.executable, "-m", "ptw_rt", "evaluate", "--random", "2", "--random-seed", "5", "--jobs", "1", "--json"],

@@ -106,6 +106,7 @@ def _summary_of_cell(cell: dict, seed: int) -> dict:
         "stiffness_valid_mean_err_pct": max((s["mean_abs_err_pct"] for s in stiff), default=None),
         "alarm_cycles": m["alarm_cycles"],
         "steer_zero_counts": steer_zero,
+        "crashed_at": cell["result"]["crashed_at"],  # s: the simulated rider fell (scored until then), or None
     }
 
 
@@ -131,9 +132,13 @@ def summarise(rides: list[dict]) -> dict:
         ranked = sorted((r for r in rides if r[key] is not None), key=lambda r: -r[key])
         return [{key: r[key], "command": reproduce_command(r)} for r in ranked[:WORST_SHOWN]]
 
-    def largest(key: str):
-        values = [r[key] for r in rides if r[key] is not None]
+    def largest(key: str, among: list[dict] = rides):
+        values = [r[key] for r in among if r[key] is not None]
         return max(values) if values else None
+
+    # a ride whose simulated rider fell is scored until the fall: its torque RMSE then says more about the fall
+    # than about the estimator (random routes set 2403: 64.9 % of the peak, the rider down 1.6 s into the scoring)
+    upright = [r for r in rides if r.get("crashed_at") is None]
 
     roll_scored = [r for r in rides if r["roll_rmse_deg"] is not None and r["peer_roll_rmse_deg"] is not None]
     alarmed = [any(r["alarm_cycles"].values()) for r in rides]
@@ -148,6 +153,7 @@ def summarise(rides: list[dict]) -> dict:
     }
     return {
         "rides": len(rides),
+        "crashed": len(rides) - len(upright),
         "promises_kept": promises,
         "roll": {
             "le_peer": sum(r["roll_rmse_deg"] <= r["peer_roll_rmse_deg"] for r in roll_scored),
@@ -180,6 +186,7 @@ def summarise(rides: list[dict]) -> dict:
                 r["torque_pct_of_peak"] is not None and r["torque_pct_of_peak"] <= TORQUE_MAX_PCT_OF_PEAK for r in rides
             ),
             "largest_pct_of_peak": largest("torque_pct_of_peak"),
+            "largest_pct_of_peak_upright": largest("torque_pct_of_peak", upright),
             "largest_valid_mean_err_nm": largest("torque_valid_max_mean_err_nm"),
             "worst_valid_mean_err": worst("torque_valid_max_mean_err_nm"),
         },
@@ -241,8 +248,13 @@ def summary_text(result: dict) -> str:
         f" {st['largest_valid_mean_err_pct']} %, mean <= {STIFFNESS_VALID_MEAN_PCT:g} % on {st['mean_le_10pct']} of"
         f" those {st['rides_valid']}",
         f"torque: <= {TORQUE_MAX_PCT_OF_PEAK:g} % of the peak on {tq['le_15pct_of_peak']}, largest"
-        f" {tq['largest_pct_of_peak']} %; while VALID, its 0.2 s trailing mean at most"
-        f" {tq['largest_valid_mean_err_nm']} N m off",
+        f" {tq['largest_pct_of_peak']} %"
+        + (
+            f" ({tq['largest_pct_of_peak_upright']} % on the {n - s['crashed']} whose simulated rider did not fall)"
+            if s["crashed"]
+            else ""
+        )
+        + f"; while VALID, its 0.2 s trailing mean at most {tq['largest_valid_mean_err_nm']} N m off",
         f"alarms (none injected): {al['alarmed_with_zero_right']} of {al['rides_with_zero_right']} rides with the"
         f" encoder zero right, {al['alarmed_with_zero_a_count_off']} of {al['rides_with_zero_a_count_off']} with it"
         " a count off",
@@ -259,6 +271,8 @@ def summary_text(result: dict) -> str:
     ):
         lines.append(f"{title}:")
         lines += [f"  {item[key]:>7}  {item['command']}" for item in items]
+    if s["crashed"]:
+        lines.append(f"rides whose simulated rider fell (scored until the fall): {s['crashed']}")
     if roll["worse_than_peer"]:
         lines.append("roll worse than the peer (ours / peer [deg]):")
         lines += [f"  {w['roll']} / {w['peer']}  {w['command']}" for w in roll["worse_than_peer"]]
