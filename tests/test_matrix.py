@@ -304,11 +304,20 @@ def test_a_bad_seed_list_is_one_line(value, message, capsys):
     assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
-def test_seeds_and_seed_together_are_refused(capsys):
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--matrix", "--seeds", "own,3", "--seed", "4"], "drop --seed"),
+        (["--scenario", "dlc_50", "--seeds", "3"], "--seeds goes with --matrix"),
+        (["--random", "2", "--seeds", "3"], "drop --seeds"),
+    ],
+)
+def test_seeds_where_they_do_not_belong_are_refused(argv, message, capsys):
     from ptw_rt.cli import main
 
-    assert main(["evaluate", "--matrix", "--seeds", "own,3", "--seed", "4"]) == 2
-    assert "drop --seed" in capsys.readouterr().err
+    assert main(["evaluate", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
 
 
 def test_progress_plain_lines_when_not_a_terminal():

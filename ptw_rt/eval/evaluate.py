@@ -464,6 +464,8 @@ def run_evaluate(args) -> int:
         from ptw_rt.eval.random_rides import run_random_command
 
         return run_random_command(args)
+    if getattr(args, "seeds", None) is not None and not getattr(args, "matrix", False):
+        raise UserFacingError("--seeds goes with --matrix (one ride or table on one noise seed: --seed S)")
     if getattr(args, "matrix", False):
         from ptw_rt.eval.matrix import run_matrix_command
 

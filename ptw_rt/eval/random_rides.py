@@ -294,6 +294,7 @@ def run_random_command(args) -> int:
             ("--all", getattr(args, "all", False)),
             ("--matrix", getattr(args, "matrix", False)),
             ("--seed", getattr(args, "seed", None)),
+            ("--seeds", getattr(args, "seeds", None)),
             ("--perturb", getattr(args, "perturb", None)),
             ("--markdown", getattr(args, "markdown", False)),
         )
