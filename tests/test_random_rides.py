@@ -81,7 +81,8 @@ def test_a_ride_whose_rider_fell_is_counted_apart_in_the_torque_figure():
     assert s["crashed"] == 1
     assert s["torque"]["largest_pct_of_peak"] == 64.9 and s["torque"]["largest_pct_of_peak_upright"] == 12.0
     text = rr.summary_text({"generator_seed": 0, "workers": 1, "wall_s": 1.0, "summary": s})
-    assert "largest 64.9 % (12.0 % on the 2 whose simulated rider did not fall)" in text
+    assert s["torque"]["le_15pct_of_peak"] == 2 and s["torque"]["le_15pct_of_peak_upright"] == 2
+    assert "largest 64.9 % (of the 2 whose simulated rider did not fall: on 2, largest 12.0 %)" in text
     assert "rides whose simulated rider fell (scored until the fall): 1" in text
     quiet = rr.summary_text({"generator_seed": 0, "workers": 1, "wall_s": 1.0, "summary": rr.summarise(rides[:2])})
     assert "fell" not in quiet and "did not fall" not in quiet

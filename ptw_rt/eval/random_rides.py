@@ -187,6 +187,10 @@ def summarise(rides: list[dict]) -> dict:
             ),
             "largest_pct_of_peak": largest("torque_pct_of_peak"),
             "largest_pct_of_peak_upright": largest("torque_pct_of_peak", upright),
+            "le_15pct_of_peak_upright": sum(
+                r["torque_pct_of_peak"] is not None and r["torque_pct_of_peak"] <= TORQUE_MAX_PCT_OF_PEAK
+                for r in upright
+            ),
             "largest_valid_mean_err_nm": largest("torque_valid_max_mean_err_nm"),
             "worst_valid_mean_err": worst("torque_valid_max_mean_err_nm"),
         },
@@ -250,7 +254,8 @@ def summary_text(result: dict) -> str:
         f"torque: <= {TORQUE_MAX_PCT_OF_PEAK:g} % of the peak on {tq['le_15pct_of_peak']}, largest"
         f" {tq['largest_pct_of_peak']} %"
         + (
-            f" ({tq['largest_pct_of_peak_upright']} % on the {n - s['crashed']} whose simulated rider did not fall)"
+            f" (of the {n - s['crashed']} whose simulated rider did not fall: on {tq['le_15pct_of_peak_upright']},"
+            f" largest {tq['largest_pct_of_peak_upright']} %)"
             if s["crashed"]
             else ""
         )
