@@ -250,11 +250,12 @@ def test_reduced_matrix_returns_every_metric():
 def test_seeds_summary_counts_each_seeds_misses_and_the_payloads_share():
     """`--seeds`: per seed, the cells that miss a target and the matrix-wide misses; per target, over all seeds."""
     good = [_cell(), _cell("dlc_100", ours=0.3, peer=0.6), _cell("urban", "mass +50 kg", ours=0.2, peer=0.4)]
-    own = {"targets": mx.check_targets(copy.deepcopy(good)), "wrong_start": {"worst_cornering_s": 5.0}}
+    own_cells = copy.deepcopy(good)
+    own = {"cells": own_cells, "targets": mx.check_targets(own_cells), "wrong_start": {"worst_cornering_s": 5.0}}
     worse = copy.deepcopy(good)
     worse[0] = _cell(ours=0.8, peer=0.5)  # slalom_30 / nominal loses to the peer, and the mean ratio goes above 0.7
     worse[2] = _cell("urban", "mass +50 kg", ours=0.2, peer=0.4, err=(12, 15))  # the payload's stiffness mean
-    other = {"targets": mx.check_targets(worse), "wrong_start": {"worst_cornering_s": None}}
+    other = {"cells": worse, "targets": mx.check_targets(worse), "wrong_start": {"worst_cornering_s": None}}
     summary = mx.seeds_summary([None, 211], [own, other])
     first, second = summary["per_seed"]
     assert first["seed"] == "own" and first["missed_cells"] == [] and first["matrix_targets_missed"] == []

@@ -46,6 +46,7 @@ def _ride(**kw):
         "stiffness_valid_mean_err_pct": 4.0,
         "alarm_cycles": {"plausibility": 0, "attitude_consistency": 0},
         "steer_zero_counts": 0.0,
+        "crashed_at": None,
     }
     ride.update(kw)
     return ride

@@ -138,7 +138,12 @@ def summarise(rides: list[dict]) -> dict:
 
     # a ride whose simulated rider fell is scored until the fall: its torque RMSE then says more about the fall
     # than about the estimator (random routes set 2403: 64.9 % of the peak, the rider down 1.6 s into the scoring)
-    upright = [r for r in rides if r.get("crashed_at") is None]
+    upright = [r for r in rides if r["crashed_at"] is None]
+
+    def torque_within(among: list[dict]) -> int:
+        return sum(
+            r["torque_pct_of_peak"] is not None and r["torque_pct_of_peak"] <= TORQUE_MAX_PCT_OF_PEAK for r in among
+        )
 
     roll_scored = [r for r in rides if r["roll_rmse_deg"] is not None and r["peer_roll_rmse_deg"] is not None]
     alarmed = [any(r["alarm_cycles"].values()) for r in rides]
@@ -182,15 +187,10 @@ def summarise(rides: list[dict]) -> dict:
             "worst_valid_err": worst("stiffness_valid_max_err_pct"),
         },
         "torque": {
-            "le_15pct_of_peak": sum(
-                r["torque_pct_of_peak"] is not None and r["torque_pct_of_peak"] <= TORQUE_MAX_PCT_OF_PEAK for r in rides
-            ),
+            "le_15pct_of_peak": torque_within(rides),
             "largest_pct_of_peak": largest("torque_pct_of_peak"),
             "largest_pct_of_peak_upright": largest("torque_pct_of_peak", upright),
-            "le_15pct_of_peak_upright": sum(
-                r["torque_pct_of_peak"] is not None and r["torque_pct_of_peak"] <= TORQUE_MAX_PCT_OF_PEAK
-                for r in upright
-            ),
+            "le_15pct_of_peak_upright": torque_within(upright),
             "largest_valid_mean_err_nm": largest("torque_valid_max_mean_err_nm"),
             "worst_valid_mean_err": worst("torque_valid_max_mean_err_nm"),
         },
