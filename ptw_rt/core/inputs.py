@@ -4,11 +4,12 @@ A non-finite or implausible value (beyond the configured limits) is replaced by 
 (REASON_OUT_OF_RANGE), and so are gyro rates that step further than the body can turn (``MAX_ANGULAR_ACCEL``);
 a stale message, or one whose rolling counter broke this cycle (S_SUSPECT: its payload
 may be garbage), is held; a steer-encoder jump larger than the steering can turn in one cycle is a corrupt
-frame and held, unless it persists for ``steer_resync`` cycles (then the encoder really is there, e.g. after
+frame and held, unless it persists for ``steer_resync`` new frames (then the encoder really is there, e.g. after
 a long silence). Both windows grow with the time since the last sound value, and neither frame has a CRC: after a
 gap, a steer count or gyro rates further than one cycle's motion from the last sound ones are taken only when the
 next frame agrees with them (garbage whose counter matched had become the baseline and locked the true values
-out). GPS: a new fix with at least a 2D solution is usable; its age decides GPS_LOST.
+out). A cycle without a new frame of a message holds its last sound values: the sample still carries the last
+frame's, which confirm nothing. GPS: a new fix with at least a 2D solution is usable; its age decides GPS_LOST.
 """
 
 from __future__ import annotations
@@ -115,6 +116,7 @@ OUTPUTS = Layout(
     steer_ok=1,  # 1: steer encoder not stale
     accel_ok=1,  # 1: accelerometer not stale
     accel_trusted=1,  # 1: this cycle's accelerometer values are new and sound (not held)
+    steer_trusted=1,  # 1: the steer is the last frame's sound value (not held: suspect, refused or waiting)
     rates_ok=1,  # 1: this cycle's rates are new and sound
     gps_ok=1,  # 1: a usable GPS fix arrived this cycle
     gps_lost=1,  # 1: no usable fix for longer than gps_hold
@@ -130,6 +132,7 @@ OUTPUTS = Layout(
     OUT_STEER_OK,
     OUT_ACCEL_OK,
     OUT_ACCEL_TRUSTED,
+    OUT_STEER_TRUSTED,
     OUT_RATES_OK,
     OUT_GPS_OK,
     OUT_GPS_LOST,
@@ -209,6 +212,13 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     if held & MSG_IMU_RATES:
         for k in range(3):
             raw[k] = st[ST_LAST + k]
+    elif st[ST_INIT] != 0.0 and (fresh & MSG_IMU_RATES) == 0:
+        # no new frame: the sample still carries the last one's rates, which are no new evidence. Read again, a
+        # refused (waiting) garbage frame confirmed itself (`sensor_faults` seed 2804: the steer encoder's case)
+        for k in range(3):
+            raw[k] = st[ST_LAST + k]
+        if st[ST_RATES_PENDING] != 0.0 or st[ST_RATES_AGE] > 0.0:
+            rates_replaced = True  # the last frame was not sound: what is held is older than it
     elif st[ST_INIT] != 0.0:  # a step no body can make since the last sound rates: a corrupt sample
         one_cycle = RATE_NOISE_STEP + MAX_ANGULAR_ACCEL * dt
         step = RATE_NOISE_STEP + MAX_ANGULAR_ACCEL * dt * (st[ST_RATES_AGE] + 1.0)
@@ -246,6 +256,13 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     if held & MSG_STEER:
         raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
         st[ST_STEER_AGE] += 1.0
+    elif st[ST_STEER_SEEN] != 0.0 and (fresh & MSG_STEER) == 0:
+        # no new frame: the sample still carries the last one's count. Read again, a refused garbage count
+        # confirmed itself a cycle later and was taken (`sensor_faults` seed 2804, random set 2401: the steer
+        # 11-17 deg off for 0.2 s, the torque -169 N m), and each re-read counted towards the resync
+        raw[RAW_STEER] = st[ST_LAST + RAW_STEER]
+        if st[ST_STEER_AGE] > 0.0 or st[ST_STEER_PENDING] != 0.0:
+            st[ST_STEER_AGE] += 1.0  # the gap since the last sound value goes on
     elif st[ST_STEER_SEEN] != 0.0:
         # the steering cannot turn more than max_steer_step counts per cycle since its last sound value; a
         # bigger jump is a corrupt frame (unless it persists: then the encoder really is there)
@@ -305,6 +322,7 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     out[OUT_STEER_OK] = 1.0 if (stale & MSG_STEER) == 0 else 0.0
     out[OUT_ACCEL_OK] = 1.0 if (stale & MSG_IMU_ACCEL) == 0 else 0.0
     out[OUT_ACCEL_TRUSTED] = 1.0 if (held & MSG_IMU_ACCEL) == 0 else 0.0
+    out[OUT_STEER_TRUSTED] = 1.0 if st[ST_STEER_AGE] == 0.0 and (stale & MSG_STEER) == 0 else 0.0
     out[OUT_RATES_OK] = 1.0 if (held & MSG_IMU_RATES) == 0 else 0.0
     out[OUT_GPS_OK] = 1.0 if gps_ok else 0.0
     out[OUT_GPS_LOST] = 1.0 if gps_lost else 0.0

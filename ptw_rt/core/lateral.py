@@ -42,6 +42,11 @@ from ptw_rt.core import tyre_bank as tb
 from ptw_rt.core.stage import Layout, Stage, all_finite, v1, v2, v3
 
 MAX_HYPOTHESES = tb.MAX_COUNT  # the bank's state is laid out for this many (the design file has `len(tb_scale)`)
+# s the inputs must be free of every fault reason before the filters' innovations are evidence about the tyres: in
+# a burst of corrupt frames a garbage payload whose 4-bit counter matched passes every check of its own (one in 16),
+# and a cycle whose other frames were sound took it as a measurement (`sensor_faults`: a lateral acceleration of
+# -15 m/s^2 mid-burst put the tyre filters' NIS at 30 and the stiffness lost VALID for 2.5 s)
+INPUT_QUIET_TIME = 0.2
 
 STATE = Layout(
     "ST_",
@@ -55,6 +60,7 @@ STATE = Layout(
     small_slip_scale=1,  # last cycle's published scale (the peak force of this cycle's slope ratio; 0: none yet)
     ran=1,  # 1: the filters ran last cycle (a coast only continues a running filter)
     coast_time=1,  # s the filters have coasted through a silent sensor
+    input_quiet=1,  # s since the inputs last raised a fault reason (INPUT_QUIET_TIME)
     y=kf.N_Y,  # scratch: this cycle's measurements
     scratch=tb.SCRATCH_SIZE,  # the bank's scratch
     bank_out=tb.OUT_SIZE,  # the bank's outputs
@@ -70,6 +76,7 @@ STATE = Layout(
     ST_SMALL_SLIP_SCALE,
     ST_RAN,
     ST_COAST_TIME,
+    ST_INPUT_QUIET,
     ST_Y,
     ST_SCRATCH,
     ST_BANK_OUT,
@@ -244,6 +251,7 @@ def lateral_stage(
     # confirm it (`ptw_rt.core.inputs`), and filters started on the held rates took up the step as torque
     run = cond[cnd.OUT_RUN] != 0.0 and (st[ST_RAN] != 0.0 or inputs[inp.OUT_RATES_OK] != 0.0)
     coast = _coasting(st, prm, run, inputs, cond)
+    st[ST_INPUT_QUIET] = 0.0 if int(inputs[inp.OUT_REASONS]) != 0 else st[ST_INPUT_QUIET] + prm[P_DT]
     filtering = run or coast
     if not run:
         st[ST_RUN_TIME] = 0.0
@@ -282,9 +290,10 @@ def lateral_stage(
         observe = (
             run
             and accel_trusted
+            and inputs[inp.OUT_STEER_TRUSTED] != 0.0  # a held steer (a frame waiting for confirmation) is no evidence
             and attitude_ok
             and inputs[inp.OUT_RATES_OK] != 0.0
-            and int(inputs[inp.OUT_REASONS]) == 0
+            and st[ST_INPUT_QUIET] >= INPUT_QUIET_TIME - 0.5 * prm[P_DT]  # this cycle's reasons included
             and st[ST_RUN_TIME] >= prm[P_CONVERGE_TIME]
         )
         track = observe and u >= prm[P_MIN_LEARNING_SPEED]

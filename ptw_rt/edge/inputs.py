@@ -6,6 +6,7 @@ raised as a reason bit of the cycle in which it was seen:
 - a frame that cannot be decoded (wrong DLC, garbage)      -> decode_errors
 - a signal outside its DBC range or not finite (frame dropped) -> out_of_range
 - a rolling counter that skipped or repeated                   -> counter_jumps
+  (a frame that continues the last in-sequence one, counting the frames between, is in sequence)
 - no valid frame within `stale_after_periods` cycle times      -> SensorTimeouts bit + sensor_stale
 Unknown identifiers are counted and otherwise ignored (they are someone else's traffic).
 Nothing here raises on bad data. Frames are unpacked by the codec's compiled message (``MessageLayout``); what

@@ -5,12 +5,14 @@ One implementation for every caller: the daemon calls ``track_values`` once per 
 log (``ptw_rt.edge.drive``). The rules (``InputTracker``'s docstring) per input message ``k``:
 
 * ``track_values``: a decoded frame (or the signals of another source, ``counted`` False): its rolling counter
-  checked (skipped or repeated -> counter_jumps, REASON_COUNTER_JUMPS, the message suspect this cycle), every
+  checked (following neither the previous frame's nor, by the frames since, the last in-sequence frame's ->
+  counter_jumps, REASON_COUNTER_JUMPS, the message suspect this cycle), every
   signal whose raw field can leave its DBC range checked (outside or NaN -> out_of_range, REASON_OUT_OF_RANGE,
   the frame dropped), for an input whose noise spans many LSBs (the IMU's) a payload repeated ``frozen_after``
   times not taken as fresh (frozen_frames: a stuck sensor behind a live counter goes stale), the signals copied
   into the Sample's slots, the message fresh;
-* ``track_decode_error``: a frame that could not be decoded; ``track_unknown``: someone else's frame;
+* ``track_decode_error``: a frame that could not be decoded (it took a slot of the counter's sequence);
+  ``track_unknown``: someone else's frame;
 * ``track_fill``: the Sample at the cycle's time: stale inputs (no valid frame within their timeout, a
   fresh -> stale transition counted), the IMU's age, the cycle's fresh/reason/suspect bits, which then restart.
 
@@ -56,6 +58,8 @@ STATE = Layout(
     counter_jumps=N_INPUTS,
     timeouts=N_INPUTS,  # fresh -> stale transitions
     counter_last=N_INPUTS,  # the last rolling counter seen (NO_COUNTER: none yet)
+    counter_good=N_INPUTS,  # the counter of the last frame that was in sequence (NO_COUNTER: none yet)
+    since_good=N_INPUTS,  # frames of the input since that one, undecodable ones included (each took a slot)
     previous=N_INPUTS * MAX_SIGNALS,  # [k * MAX_SIGNALS + j]: signal j of input k's last frame
     repeats=N_INPUTS,  # consecutive frames whose payload (counter and CRC aside) repeats the one before
     frozen_frames=N_INPUTS,  # cumulative: frames not taken as fresh because their payload no longer changes
@@ -75,6 +79,8 @@ STATE = Layout(
     TR_COUNTER_JUMPS,
     TR_TIMEOUTS,
     TR_COUNTER_LAST,
+    TR_COUNTER_GOOD,
+    TR_SINCE_GOOD,
     TR_PREVIOUS,
     TR_REPEATS,
     TR_FROZEN_FRAMES,
@@ -144,6 +150,8 @@ def track_restart(state: np.ndarray) -> None:
         state[TR_STALE + k] = 1.0  # stale again without a timeout transition: nothing has been received yet
         state[TR_LAST_VALID + k] = -math.inf
         state[TR_COUNTER_LAST + k] = NO_COUNTER
+        state[TR_COUNTER_GOOD + k] = NO_COUNTER
+        state[TR_SINCE_GOOD + k] = 0.0
         bits |= 1 << k
     state[TR_STALE_BITS] = bits
     state[TR_FRESH] = 0.0
@@ -160,9 +168,23 @@ def track_values(state: np.ndarray, params: np.ndarray, k: int, t: float, values
     pos = int(params[TP_COUNTER_POS + k])
     if counted and pos >= 0:
         counter = int(values[pos])
+        modulus = int(params[TP_MODULUS + k])
         last = state[TR_COUNTER_LAST + k]
+        good = state[TR_COUNTER_GOOD + k]
+        since = state[TR_SINCE_GOOD + k] + 1.0
         state[TR_COUNTER_LAST + k] = counter
-        if last != NO_COUNTER and (counter - int(last)) % int(params[TP_MODULUS + k]) != 1:
+        # in sequence: the counter follows the previous frame's, or the last in-sequence frame's by the frames
+        # since. A garbage payload (a random counter) between two sound frames took a slot: the sound frame after
+        # it was suspect too (only the previous frame's counter was asked), and in a burst where every other frame
+        # was garbage every sound frame was held (`sensor_faults`: 0.3 s of held rates and steer)
+        follows_last = last == NO_COUNTER or (counter - int(last)) % modulus == 1
+        # (within one turn of the counter: beyond it, 16 frames lost and none are the same count)
+        follows_good = good != NO_COUNTER and since < modulus and (counter - int(good)) % modulus == int(since)
+        if follows_last or follows_good:
+            state[TR_COUNTER_GOOD + k] = counter
+            state[TR_SINCE_GOOD + k] = 0.0
+        else:
+            state[TR_SINCE_GOOD + k] = since
             state[TR_COUNTER_JUMPS + k] += 1.0
             state[TR_REASONS] = int(state[TR_REASONS]) | REASON_COUNTER_JUMPS
             state[TR_SUSPECT] = int(state[TR_SUSPECT]) | bit  # the payload of a broken sequence may be garbage
@@ -200,6 +222,7 @@ def track_values(state: np.ndarray, params: np.ndarray, k: int, t: float, values
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def track_decode_error(state: np.ndarray, k: int) -> None:
     state[TR_DECODE_ERRORS + k] += 1.0
+    state[TR_SINCE_GOOD + k] += 1.0  # it took a slot of the sequence: the next sound frame's counter skips it
     state[TR_REASONS] = int(state[TR_REASONS]) | REASON_DECODE_ERRORS
 
 
