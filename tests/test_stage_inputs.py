@@ -242,3 +242,21 @@ def test_a_cycle_without_new_frames_holds_the_last_sound_values(stage):
     assert out[inp.OUT_RATES_OK] == 1.0 and int(out[inp.OUT_REASONS]) == 0
     out = run(stage, sample(p=0.11, steer=522.0))
     assert out[inp.OUT_RAW + inp.RAW_P] == 0.11 and out[inp.OUT_RAW + inp.RAW_STEER] == 522.0
+
+
+def test_a_cycle_without_a_new_accelerometer_frame_trusts_only_what_the_last_one_was(stage):
+    """The accelerometer's values are not replaced, only not trusted; but a suspect frame's garbage stays in the
+    Sample, and the next cycle without a new IMU_Accel frame read it again as trusted."""
+    out = run(stage, sample())
+    assert out[inp.OUT_ACCEL_TRUSTED] == 1.0
+    out = run(stage, sample(fresh=lay.MSG_IMU_RATES | lay.MSG_STEER))  # a late frame
+    assert out[inp.OUT_ACCEL_TRUSTED] == 1.0  # the last one was sound
+    s = sample()
+    s[lay.S_SUSPECT] = lay.MSG_IMU_ACCEL
+    out = run(stage, s)
+    assert out[inp.OUT_ACCEL_TRUSTED] == 0.0
+    for _ in range(3):  # no new frame: the suspect one's values still in the Sample
+        out = run(stage, sample(fresh=lay.MSG_IMU_RATES | lay.MSG_STEER))
+        assert out[inp.OUT_ACCEL_TRUSTED] == 0.0
+    out = run(stage, sample())
+    assert out[inp.OUT_ACCEL_TRUSTED] == 1.0

@@ -66,6 +66,7 @@ STATE = Layout(
     steer_candidate=1,  # that value (counts)
     rates_pending=1,  # the same for the gyro rates
     rates_candidate=3,  # p, q, r [rad/s]
+    accel_sound=1,  # 1 while the accelerometer's last frame was sound (a cycle without a new frame re-reads it)
 )
 (
     ST_LAST,
@@ -80,6 +81,7 @@ STATE = Layout(
     ST_STEER_CANDIDATE,
     ST_RATES_PENDING,
     ST_RATES_CANDIDATE,
+    ST_ACCEL_SOUND,
 ) = STATE.offsets
 
 # The body cannot change its rotation rate faster than this: a scooter's quickest roll or yaw flick is ~20 rad/s^2
@@ -321,7 +323,13 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     out[OUT_IMU_OK] = 1.0 if (stale & MSG_IMU_RATES) == 0 else 0.0
     out[OUT_STEER_OK] = 1.0 if (stale & MSG_STEER) == 0 else 0.0
     out[OUT_ACCEL_OK] = 1.0 if (stale & MSG_IMU_ACCEL) == 0 else 0.0
-    out[OUT_ACCEL_TRUSTED] = 1.0 if (held & MSG_IMU_ACCEL) == 0 else 0.0
+    # the accelerometer's values are never replaced, only not trusted: in a cycle without a new frame the Sample
+    # re-reads the last one, trusted only if that one was (a suspect frame's garbage is still in the Sample)
+    if held & MSG_IMU_ACCEL:
+        st[ST_ACCEL_SOUND] = 0.0
+    elif fresh & MSG_IMU_ACCEL:
+        st[ST_ACCEL_SOUND] = 1.0
+    out[OUT_ACCEL_TRUSTED] = st[ST_ACCEL_SOUND]
     out[OUT_STEER_TRUSTED] = 1.0 if st[ST_STEER_AGE] == 0.0 and (stale & MSG_STEER) == 0 else 0.0
     out[OUT_RATES_OK] = 1.0 if (held & MSG_IMU_RATES) == 0 else 0.0
     out[OUT_GPS_OK] = 1.0 if gps_ok else 0.0
