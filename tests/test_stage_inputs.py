@@ -260,3 +260,16 @@ def test_a_cycle_without_a_new_accelerometer_frame_trusts_only_what_the_last_one
         assert out[inp.OUT_ACCEL_TRUSTED] == 0.0
     out = run(stage, sample())
     assert out[inp.OUT_ACCEL_TRUSTED] == 1.0
+
+
+def test_a_gps_frame_whose_counter_broke_is_no_fix(stage):
+    """Held like every other message's: its payload may be garbage (the speed stage's gate sees only what passed)."""
+    every = lay.MSG_IMU_RATES | lay.MSG_IMU_ACCEL | lay.MSG_STEER | lay.MSG_GPS
+    out = run(stage, sample(fresh=every))
+    assert out[inp.OUT_GPS_OK] == 1.0 and out[inp.OUT_COURSE_NEW] == 1.0
+    s = sample(gps=70.0, fresh=every)
+    s[lay.S_SUSPECT] = lay.MSG_GPS
+    out = run(stage, s)
+    assert out[inp.OUT_GPS_OK] == 0.0 and out[inp.OUT_COURSE_NEW] == 0.0
+    out = run(stage, sample(fresh=every))
+    assert out[inp.OUT_GPS_OK] == 1.0

@@ -9,7 +9,8 @@ a long silence). Both windows grow with the time since the last sound value, and
 gap, a steer count or gyro rates further than one cycle's motion from the last sound ones are taken only when the
 next frame agrees with them (garbage whose counter matched had become the baseline and locked the true values
 out). A cycle without a new frame of a message holds its last sound values: the sample still carries the last
-frame's, which confirm nothing. GPS: a new fix with at least a 2D solution is usable; its age decides GPS_LOST.
+frame's, which confirm nothing. GPS: a new fix whose counter held, with at least a 2D solution, is usable; its age
+decides GPS_LOST.
 """
 
 from __future__ import annotations
@@ -303,7 +304,9 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
         reasons_now |= REASON_STALE
 
     gps_fix = sample[S_GPS_FIX]
-    gps_new = (fresh & MSG_GPS) != 0 and (stale & MSG_GPS) == 0
+    # a fix whose counter broke is held like any other message's (its payload may be garbage; the speed stage's gate
+    # then sees only what passed): a GPS frame of a corrupt burst was taken as a fix
+    gps_new = (fresh & MSG_GPS) != 0 and ((stale | int(sample[S_SUSPECT])) & MSG_GPS) == 0
     gps_ok = gps_new and gps_fix >= 2.0 and math.isfinite(sample[S_GPS_SPEED])
     if gps_ok:
         st[ST_GPS_AGE] = 0.0
