@@ -10,13 +10,15 @@ from ptw_rt.core import conditioning as cnd
 from ptw_rt.core import inputs as inp
 from ptw_rt.core import kalman as kf
 from ptw_rt.core import lateral as lat
+from ptw_rt.core import layout as lay
 from ptw_rt.core import speed as spd
 from ptw_rt.core import tyre_bank as tb
 
 
-def _step(b, cond, accel=1.0, attitude_ok=1.0, rates=1.0, steer_ok=1.0, imu_ok=1.0):
+def _step(b, cond, accel=1.0, attitude_ok=1.0, rates=1.0, steer_ok=1.0, imu_ok=1.0, steer_trusted=None, reasons=0):
     flags = {"accel_trusted": accel, "rates_ok": rates, "steer_ok": steer_ok, "imu_ok": imu_ok, "core_ok": 1.0}
-    flags["steer_trusted"] = steer_ok
+    flags["steer_trusted"] = steer_ok if steer_trusted is None else steer_trusted
+    flags["reasons"] = float(reasons)
     inputs = inp.OUTPUTS.vector(flags, strict=False)
     speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
     attitude = att.OUTPUTS.vector({"ok": attitude_ok}, strict=False)
@@ -215,16 +217,8 @@ def test_the_published_scale_is_the_banks_over_the_mean_slope_ratio_of_what_it_l
 
 def _observed(b, a_y: float, reasons: int = 0, steer_trusted: float = 1.0) -> float:
     """One cycle riding straight at 20 m/s with the lateral acceleration `a_y`; the tyre filters' short-window NIS."""
-    inputs = inp.OUTPUTS.vector(
-        {"accel_trusted": 1.0, "rates_ok": 1.0, "steer_ok": 1.0, "imu_ok": 1.0, "core_ok": 1.0}
-        | {"steer_trusted": steer_trusted, "reasons": float(reasons)},
-        strict=False,
-    )
-    speed = spd.OUTPUTS.vector(gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
-    attitude = att.OUTPUTS.vector({"ok": 1.0}, strict=False)
     cond = cnd.OUTPUTS.vector({"run": 1.0, "a_y": a_y}, strict=False)
-    lat.lateral_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, attitude, cond)
-    return float(b.outputs[lat.OUT_TYRE_NIS_FAST])
+    return float(_step(b, cond, steer_trusted=steer_trusted, reasons=reasons)[lat.OUT_TYRE_NIS_FAST])
 
 
 def test_no_tyre_evidence_within_the_quiet_time_after_an_input_fault_nor_from_a_held_steer(settings, design):
@@ -235,8 +229,6 @@ def test_no_tyre_evidence_within_the_quiet_time_after_an_input_fault_nor_from_a_
     b = lat.STAGE.alone(settings, design)
     for _ in range(400):
         _observed(b, 0.0)
-    from ptw_rt.core import layout as lay
-
     _observed(b, 0.0, reasons=lay.REASON_COUNTER_JUMPS)
     quiet = int(round(lat.INPUT_QUIET_TIME / b.params[lat.P_DT]))
     for _ in range(quiet - 2):
