@@ -210,3 +210,86 @@ def test_a_sideslip_a_slide_left_far_off_is_restarted_not_matched_by_the_heading
     assert np.max(np.abs(vy[after])) < 0.5
     assert np.max(np.abs(heading_error[after])) < math.radians(2.0)
     assert np.max(np.abs(roll_error[t >= 5.0])) < math.radians(1.0)
+
+
+def _run_with_faults(phi, r, u, h=0.5, p_fault=None, fy_fault=None, imu_fresh=True, seed=1):
+    """`_run`'s ride with faults added to the roll gyro and the lateral accelerometer; the roll, its sd and the roll-
+    gyro bias step the filter took each cycle (`attitude._roll_gyro_step`)."""
+    settings = load_settings(DEFAULT_CONFIG)
+    prm = att.attitude_params(DT, G, h, 0.0, settings.estimator.attitude, 0.1)
+    p, q, rb, fy, fz, psi = _ride(phi, r, u, h, 0.0, seed)
+    p = p + (0.0 if p_fault is None else p_fault)
+    fy = fy + (0.0 if fy_fault is None else fy_fault)
+    st = att.new_state()
+    out = np.zeros(att.OUT_SIZE)
+    roll, sd, steps = (np.zeros(len(phi)) for _ in range(3))
+    for k in range(len(phi)):
+        course_new = k % 10 == 4 and k >= 10
+        course = (psi[k - 10] + math.pi) % (2 * math.pi) - math.pi if course_new else 0.0
+        att.attitude_step(
+            st, out, prm, p[k], q[k], rb[k], fy[k], fz[k], u[k], 0.1, True, True, course, course_new, False,
+            False, True, imu_fresh,
+        )  # fmt: skip
+        roll[k], sd[k], steps[k] = out[att.OUT_ROLL], out[att.OUT_ROLL_SD], out[att.OUT_GYRO_STEP]
+    return roll, sd, steps
+
+
+@pytest.mark.parametrize("bias", [0.05, -0.05, 0.1])
+def test_a_roll_gyro_bias_step_is_taken_at_once(bias):
+    """Riding straight at 30 m/s, the roll gyro's bias steps at 20 s. No roll acceleration made that jump (the
+    accelerometer, 0.5 m above the ground, did not feel it), so it is taken as a bias step in the cycle after it:
+    the roll stays right. Without the check (no fresh samples to compare) it runs off at 2.9 deg/s per 0.05 rad/s
+    until the lateral force, which a sideslip can explain for seconds, pulls it back."""
+    t = np.arange(0, 40, DT)
+    u = np.full_like(t, 30.0)
+    phi = math.radians(1.0) * np.sin(2 * math.pi * 0.3 * t)  # a rider's small weave
+    r = G * np.tan(phi) / u
+    fault = np.where(t >= 20.0, bias, 0.0)
+    roll, sd, steps = _run_with_faults(phi, r, u, p_fault=fault)
+    taken = np.flatnonzero(steps)
+    assert len(taken) == 1 and 20.0 <= t[taken[0]] <= 20.02
+    assert steps[taken[0]] == pytest.approx(bias, abs=0.01)
+    after = t >= 20.0
+    healthy, _, _ = _run_with_faults(phi, r, u)  # (its roll carries the accelerometer's unlearned bias, 0.3 deg)
+    assert np.max(np.abs(roll[after] - healthy[after])) < math.radians(0.3)
+    assert np.all(np.abs(roll[after] - phi[after]) < 3.0 * sd[after] + math.radians(0.1))  # its sd covers it
+    unchecked, _, none = _run_with_faults(phi, r, u, p_fault=fault, imu_fresh=False)
+    assert not none.any()
+    assert np.max(np.abs(unchecked[after] - phi[after])) > math.radians(1.5)  # what the check saves
+
+
+@pytest.mark.parametrize(("lean_deg", "duration"), [(12.0, 1.5), (25.0, 0.6)])
+def test_a_quick_lane_change_is_no_gyro_step(lean_deg, duration):
+    """A lane change at 100 km/h, up to 25 deg reversed within 0.6 s with the IMU 0.8 m up: the roll rate changes
+    by up to 0.03 rad/s per sample, and the accelerometer feels each change through the lever arm: no step."""
+    t = np.arange(0, 30, DT)
+    u = np.full_like(t, 100 / 3.6)
+    a, d = 10.0, duration
+    phi = math.radians(lean_deg) * (
+        _smooth_step(t, a, a + d) - 2 * _smooth_step(t, a + d + 0.3, a + 2 * d + 0.3)
+        + _smooth_step(t, a + 2 * d + 0.6, a + 3 * d + 0.6)
+    )  # fmt: skip
+    r = G * np.tan(phi) / u
+    _, _, steps = _run_with_faults(phi, r, u, h=0.8)
+    assert not steps.any()
+
+
+def test_a_kick_of_the_accelerometer_alone_is_no_gyro_step():
+    """A pothole's lateral spike (8 m/s^2 for one sample) is not the gyro's: the gyro's own share of the comparison
+    stays at its noise, so nothing is taken."""
+    t = np.arange(0, 30, DT)
+    u = np.full_like(t, 20.0)
+    phi = np.zeros_like(t)
+    kick = np.where(np.abs(t - 15.0) < 0.005, 8.0, 0.0)
+    _, _, steps = _run_with_faults(phi, np.zeros_like(t), u, fy_fault=kick)
+    assert not steps.any()
+
+
+def test_a_bias_that_grows_over_a_second_is_no_step():
+    """The check sees jumps between two samples only: a bias growing by 0.05 rad/s over 1 s (a thermal transient)
+    passes it, and is the consistency monitor's (tests/test_attitude_consistency.py)."""
+    t = np.arange(0, 40, DT)
+    u = np.full_like(t, 30.0)
+    phi = np.zeros_like(t)
+    _, _, steps = _run_with_faults(phi, phi, u, p_fault=0.05 * np.clip(t - 20.0, 0.0, 1.0))
+    assert not steps.any()

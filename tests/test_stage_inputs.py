@@ -273,3 +273,19 @@ def test_a_gps_frame_whose_counter_broke_is_no_fix(stage):
     assert out[inp.OUT_GPS_OK] == 0.0 and out[inp.OUT_COURSE_NEW] == 0.0
     out = run(stage, sample(fresh=every))
     assert out[inp.OUT_GPS_OK] == 1.0
+
+
+def test_imu_fresh_only_for_a_new_sound_sample_of_both_imu_messages(stage):
+    """The attitude filter's roll-gyro step check compares consecutive samples: a cycle that re-reads the last
+    frame, or whose frame is suspect, stale or refused, is no sample (a re-read in a lane change reads as a step)."""
+    both = lay.MSG_IMU_RATES | lay.MSG_IMU_ACCEL
+    assert run(stage, sample(p=0.02))[inp.OUT_IMU_FRESH] == 1.0
+    assert run(stage, sample(p=0.02, fresh=lay.MSG_IMU_ACCEL))[inp.OUT_IMU_FRESH] == 0.0  # rates re-read
+    assert run(stage, sample(p=0.02, fresh=lay.MSG_IMU_RATES))[inp.OUT_IMU_FRESH] == 0.0  # accelerometer re-read
+    assert run(stage, sample(p=0.02, fresh=both, stale=lay.MSG_IMU_ACCEL))[inp.OUT_IMU_FRESH] == 0.0
+    s = sample(p=0.02)
+    s[lay.S_SUSPECT] = lay.MSG_IMU_RATES
+    assert run(stage, s)[inp.OUT_IMU_FRESH] == 0.0
+    assert run(stage, sample(p=2.0))[inp.OUT_IMU_FRESH] == 0.0  # a step no body can make: refused
+    assert run(stage, sample(p=0.02, steer=math.nan))[inp.OUT_IMU_FRESH] == 0.0  # garbage in this cycle's input
+    assert run(stage, sample(p=0.02))[inp.OUT_IMU_FRESH] == 1.0

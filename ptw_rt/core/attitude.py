@@ -66,7 +66,10 @@ N_DYNAMIC_STATES = (X_PHI, X_PSI, X_VY, X_AV)  # reset on a restart; the biases 
 # inputs of the previous cycle (processed one cycle late), at ST_PREV + PREV_*
 PREV_P, PREV_Q, PREV_R, PREV_FY, PREV_U, PREV_U_VAR, PREV_OK, PREV_P2, PREV_RG, PREV_RG2, PREV_RATES_OK = range(11)
 PREV_RATES_OK2 = 11  # the rates of the cycle before the previous one were measured (PREV_P2's, PREV_RG2's)
-N_PREV = 12
+PREV_P3 = 12  # the roll rate three cycles back, and the lateral specific force two and three cycles back: the
+PREV_FY2 = 13  # roll-gyro step check's samples (`_roll_gyro_step`)
+PREV_FY3 = 14
+N_PREV = 15
 MAX_LATENCY_CYCLES = 32
 STATE = Layout(
     "ST_",
@@ -93,6 +96,9 @@ STATE = Layout(
     burst_biases=N_BIASES,  # the biases (b_p, b_q, b_r, b_ay) as the current burst found them (only updates move them)
     burst_roll_moved=1,  # rad, what the measurement updates have moved the roll by since the burst began
     yaw_accel=1,  # rad/s^2, the ground yaw rate's derivative, low-passed over YAW_ACCEL_TIME (the sideslip's drive)
+    imu_fresh_run=1,  # consecutive cycles with new sound samples of the gyros and accelerometer (`_roll_gyro_step`)
+    step_ms=1,  # (rad/s)^2, running mean square of the roll-gyro step statistic in healthy riding (its noise)
+    step_last=1,  # rad/s, that statistic in the previous cycle (0 without one)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -118,6 +124,9 @@ STATE = Layout(
     ST_BURST_BIASES,
     ST_BURST_ROLL_MOVED,
     ST_YAW_ACCEL,
+    ST_IMU_FRESH_RUN,
+    ST_STEP_MS,
+    ST_STEP_LAST,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -167,6 +176,20 @@ NU_CLIP = 2.0  # standard deviations: bound of each whitened innovation in the c
 # for the rest of the ride, and with them the yaw-gyro bias's only reference while riding
 COURSE_REINIT_FIXES = 10
 INITIAL_VY_SD = 0.5  # m/s: a gripping vehicle's sideslip velocity, a priori
+# A step of the roll-rate gyro's bias (a shock, a sensor that restarts on a stale calibration) is a jump of its level
+# between two samples that no roll acceleration made: the body's roll rate changes through a roll acceleration, and
+# the accelerometer, imu_height above the ground, feels it as h phi''. Riding straight nothing else can tell such a
+# step from a sideslip within the 1 s the roll's tolerance leaves (docs/estimator.md, "Why the first seconds stay
+# VALID"), and the roll ran 2.9 deg/s off, VALID, for up to 2.5 s. So `_roll_gyro_step` compares, sample by
+# sample, the gyro's change with the one the accelerometer saw: a step beyond GYRO_STEP_Z standard deviations of
+# that comparison's own noise in healthy riding (its running mean square, from the configured gyro and lateral
+# noises at the start) is taken at once as a step of the bias, with its uncertainty. Its one ambiguity: a roll
+# acceleration that jumps within one sample reads as a step of up to half the jump x dt (GYRO_STEP_MIN: 4 rad/s^2)
+GYRO_STEP_Z = 6.0
+GYRO_STEP_MIN = 0.02  # rad/s: the smallest step taken, whatever the noise
+GYRO_STEP_NOISE_TIME = 5.0  # s: time constant of the comparison's running mean square
+GYRO_STEP_SIZE_DOUBT = 0.1  # share of a step taken that its uncertainty adds beyond the comparison's noise
+GYRO_STEP_MIN_HEIGHT = 0.1  # m: an IMU lower than this sees too little of the roll acceleration to check the gyro
 INITIAL_AV_SD = 1.0  # m/s^2: its rate
 
 # ---- parameters (float64 vector: `attitude_params` builds the filter's from the config, `build_params` all) ----
@@ -263,6 +286,7 @@ OUTPUTS = Layout(
     yaw_rate_sd=1,  # rad/s, standard deviation of yaw_rate from the biases' uncertainty (what the tyres learn on)
     bay_sd=1,  # m/s^2, standard deviation of the lateral accelerometer's bias estimate
     roll_correction=1,  # rad, what this cycle's measurement updates moved the roll by (the prediction's move not)
+    gyro_step=1,  # rad/s, the roll-gyro bias step found and taken this cycle (0: none; `_roll_gyro_step`)
     # the stage's (attitude_stage), not the filter's:
     ok=1,  # 1: the filter is initialised and every output above is finite
     rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
@@ -289,13 +313,14 @@ OUTPUTS = Layout(
     OUT_YAW_RATE_SD,
     OUT_BAY_SD,
     OUT_ROLL_CORRECTION,
+    OUT_GYRO_STEP,
     OUT_OK,
     OUT_REJECTED_RUN,
     OUT_CONSISTENCY,
     OUT_INCONSISTENT,
     OUT_SATURATED,
 ) = OUTPUTS.offsets
-N_FILTER_OUT = OUT_ROLL_CORRECTION + 1  # what `attitude_step` writes
+N_FILTER_OUT = OUT_GYRO_STEP + 1  # what `attitude_step` writes
 OUT_SIZE = OUTPUTS.size
 
 
@@ -406,6 +431,43 @@ def _restart_sideslip(x: np.ndarray, P: np.ndarray) -> None:
     P[X_AV, X_AV] = INITIAL_AV_SD**2
 
 
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _roll_gyro_step(st: np.ndarray, prm: np.ndarray, prev: np.ndarray, p: float, f_y: float, sound: bool) -> float:
+    """The roll-gyro bias step [rad/s] between the previous cycle's sample and the one before it, or 0 (module
+    constants GYRO_STEP_*). With Dp_k the gyro's change into sample k and the trapezoid of the lateral specific force
+    f over the same interval, rho_k = Dp_k - dt (f_k + f_{k-1}) / (2 h) is what of the gyro's change the lever arm
+    did not feel, plus slow terms (the turn's u r, gravity, the sideslip) that a second difference removes: a step b
+    at sample k makes rho_k - (rho_{k-1} + rho_{k+1}) / 2 = b, healthy riding its noise. The same statistic a cycle
+    earlier, centred on the sample before the step, is -b/2: a step is taken where the statistic follows one of
+    the other sign and at least a quarter its size (else a step of twice the limit was taken a cycle early, as -b/2:
+    the +0.1 rad/s step on `handling_40_120`), and where the gyro's own share is beyond the limit as well (a kick of
+    the accelerometer alone is not the gyro's). `sound`: this cycle's samples are new, sound and riding; four in a
+    row are needed."""
+    h = prm[A_IMU_HEIGHT]
+    last = st[ST_STEP_LAST]
+    st[ST_STEP_LAST] = 0.0
+    if not sound or h < GYRO_STEP_MIN_HEIGHT:
+        st[ST_IMU_FRESH_RUN] = 0.0
+        return 0.0
+    st[ST_IMU_FRESH_RUN] += 1.0
+    if st[ST_IMU_FRESH_RUN] < 4.0:
+        return 0.0
+    dt = prm[A_DT]
+    if not st[ST_STEP_MS] > 0.0:  # the comparison's noise from the configured sensors' until riding has shown it
+        st[ST_STEP_MS] = 5.0 * prm[A_R_STANDSTILL_RATE] ** 2 + (0.5 * dt / h * prm[A_R_LATERAL]) ** 2
+    p1, p2, p3 = prev[PREV_P], prev[PREV_P2], prev[PREV_P3]
+    f1, f2, f3 = prev[PREV_FY], prev[PREV_FY2], prev[PREV_FY3]
+    gyro = (p1 - p2) - 0.5 * ((p2 - p3) + (p - p1))
+    felt = 0.5 * dt / h * ((f1 + f2) - 0.5 * ((f2 + f3) + (f_y + f1)))
+    step = gyro - felt
+    limit = max(GYRO_STEP_Z * math.sqrt(st[ST_STEP_MS]), GYRO_STEP_MIN)
+    if abs(step) > limit and abs(gyro) > limit and gyro * step > 0.0 and -last * step > 0.25 * step * step:
+        return step  # (the samples are re-based on it by the caller: the next cycle's statistic starts from 0)
+    st[ST_STEP_LAST] = step
+    st[ST_STEP_MS] += min(dt / GYRO_STEP_NOISE_TIME, 1.0) * (min(step * step, limit * limit) - st[ST_STEP_MS])
+    return 0.0
+
+
 @njit(cache=True)
 def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     """(Re)start roll, heading and sideslip; keep the biases and their covariance."""
@@ -432,6 +494,7 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     st[ST_REJECTED] = 0.0
     st[ST_QUIET] = 0.0
     st[ST_YAW_ACCEL] = 0.0
+    st[ST_IMU_FRESH_RUN] = 0.0
     for k in range(MAX_LATENCY_CYCLES):
         st[ST_PSI_HIST + k] = 0.0
     st[ST_INIT] = 1.0
@@ -488,12 +551,14 @@ def attitude_step(
     standstill: bool,
     saturated: bool = False,
     rates_trusted: bool = True,
+    imu_fresh: bool = False,
 ) -> None:
     """One cycle. p, q, r: body rates [rad/s]; f_y, f_z: body specific force [m/s^2]; u: forward speed and
     u_sd its standard deviation [m/s]; course [rad] valid when course_new (a fresh GPS fix at speed);
     standstill: the vehicle is known to stand still (zero rates and sideslip); saturated: a gyro reads its full
     scale (GYRO_FULL_SCALE: the rate integrated is a bound, not the rate); rates_trusted: no burst of corrupt input
-    is under way (the rates may be garbage that passed the checks: they must not open the sideslip's covariance)."""
+    is under way (the rates may be garbage that passed the checks: they must not open the sideslip's covariance);
+    imu_fresh: p and f_y are a new sound sample of each sensor (the roll-gyro step check compares consecutive ones)."""
     dt = prm[A_DT]
     g = prm[A_G]
     h = prm[A_IMU_HEIGHT]
@@ -513,15 +578,32 @@ def attitude_step(
         _reset_dynamic(st, prm, roll0)
         prev[PREV_P] = p
         prev[PREV_P2] = p
+        prev[PREV_P3] = p
         prev[PREV_Q] = q
         prev[PREV_R] = r
         prev[PREV_FY] = f_y
+        prev[PREV_FY2] = f_y
+        prev[PREV_FY3] = f_y
         prev[PREV_U] = u
         prev[PREV_U_VAR] = u_sd * u_sd
         prev[PREV_OK] = 0.0
         s0, c0 = math.sin(roll0), math.cos(roll0)
         prev[PREV_RG] = q * s0 + r * c0
         prev[PREV_RG2] = prev[PREV_RG]
+
+    # ---- 0. a step of the roll gyro's bias, taken at once: the step's sample and the one before it are this
+    # cycle's and the previous one's; the samples before the step become what the gyro would have read with it, so
+    # no derivative of this cycle or the next sees a roll acceleration that was not there ----
+    sound = imu_fresh and rates_ok and accel_ok and rates_trusted and not saturated
+    step = _roll_gyro_step(st, prm, prev, p, f_y, sound and u >= prm[A_COURSE_MIN_SPEED])
+    out[OUT_GYRO_STEP] = step
+    if step != 0.0:
+        x[X_BP] += step
+        x[X_PHI] -= 0.5 * dt * step  # the last prediction integrated half a cycle of it (the trapezoid)
+        prev[PREV_P2] += step
+        prev[PREV_P3] += step
+        P[X_BP, X_BP] += st[ST_STEP_MS] + (GYRO_STEP_SIZE_DOUBT * step) ** 2
+        P[X_PHI, X_PHI] += (0.5 * dt * step) ** 2
 
     # ---- 1. measurements of the previous cycle, with central-difference lever-arm derivatives ----
     phi = x[X_PHI]
@@ -714,6 +796,7 @@ def attitude_step(
     st[ST_PSI_HIST] = d_psi
 
     # ---- 4. this cycle's inputs become the previous ones ----
+    prev[PREV_P3] = prev[PREV_P2]
     prev[PREV_P2] = prev[PREV_P]
     prev[PREV_RG2] = prev[PREV_RG]
     if rates_ok:
@@ -723,6 +806,8 @@ def attitude_step(
     phi = x[X_PHI]
     s, c = math.sin(phi), math.cos(phi)
     prev[PREV_RG] = (prev[PREV_Q] - x[X_BQ]) * s + (prev[PREV_R] - x[X_BR]) * c
+    prev[PREV_FY3] = prev[PREV_FY2]
+    prev[PREV_FY2] = prev[PREV_FY]
     prev[PREV_FY] = f_y
     prev[PREV_U] = u
     prev[PREV_U_VAR] = u_sd * u_sd
@@ -822,6 +907,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         standstill,
         saturated,
         not in_burst,
+        inputs[inp.OUT_IMU_FRESH] != 0.0,
     )
     if in_burst:
         st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]

@@ -126,6 +126,7 @@ OUTPUTS = Layout(
     gps_age=1,  # s since the last usable fix
     course=1,  # rad, GPS course over ground wrapped to (-pi, pi] (0 when course_new is 0)
     course_new=1,  # 1: a usable course arrived this cycle
+    imu_fresh=1,  # 1: new IMU_Rates and IMU_Accel frames arrived this cycle, both sound (new samples, not re-read)
 )
 (
     OUT_RAW,
@@ -142,6 +143,7 @@ OUTPUTS = Layout(
     OUT_GPS_AGE,
     OUT_COURSE,
     OUT_COURSE_NEW,
+    OUT_IMU_FRESH,
 ) = OUTPUTS.offsets
 
 
@@ -340,6 +342,9 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     out[OUT_GPS_AGE] = st[ST_GPS_AGE]
     out[OUT_COURSE] = _wrap_pi(course)
     out[OUT_COURSE_NEW] = 1.0 if course_new else 0.0
+    imu = MSG_IMU_RATES | MSG_IMU_ACCEL
+    imu_fresh = (fresh & imu) == imu and (held & imu) == 0 and not reasons_now & REASON_OUT_OF_RANGE
+    out[OUT_IMU_FRESH] = 1.0 if imu_fresh else 0.0
 
 
 STAGE = Stage(

@@ -123,6 +123,7 @@ PERTURB_KEYS = {
     "fault_at": "s into the ride at which the faults below appear (0: from the start)",
     "yaw_gyro_scale": "factor on the yaw-rate gyro's reading (a scale error)",
     "roll_gyro_bias_step": "rad/s added to the roll-rate gyro's reading (a bias step)",
+    "roll_gyro_bias_ramp": "s over which that bias grows from 0 to its size (0: a step within one sample)",
     "steer_offset_step": "counts added to the steering encoder's reading (a slipped encoder)",
 }
 
@@ -146,6 +147,7 @@ class Perturbation:
     fault_at: float = 0.0
     yaw_gyro_scale: float = 1.0
     roll_gyro_bias_step: float = 0.0
+    roll_gyro_bias_ramp: float = 0.0
     steer_offset_step: float = 0.0
 
     def as_dict(self) -> dict[str, float | None]:
@@ -183,6 +185,8 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
             raise UserFacingError(f"--perturb {item!r}: yaw_gyro_scale is a factor, expected 0.2 .. 5")
         if key == "roll_gyro_bias_step" and not abs(value) <= 1.0:
             raise UserFacingError(f"--perturb {item!r}: roll_gyro_bias_step must be within -1 .. 1 rad/s")
+        if key == "roll_gyro_bias_ramp" and not 0.0 <= value <= 3600.0:
+            raise UserFacingError(f"--perturb {item!r}: roll_gyro_bias_ramp must be within 0 .. 3600 s")
         if key in ("steer_offset", "steer_offset_step") and not (-100 <= value <= 100 and value == int(value)):
             raise UserFacingError(f"--perturb {item!r}: {key} is an integer number of counts, |.| <= 100")
         if key in values and values[key] != value:  # which one was meant? (the last one won, silently)

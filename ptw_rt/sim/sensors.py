@@ -225,7 +225,10 @@ def make_sensor_streams(
             sig["YawRate"] = np.where(
                 after, sig["YawRate"] + (pert.yaw_gyro_scale - 1.0) * clean["YawRate"], sig["YawRate"]
             )
-            sig["RollRate"] = sig["RollRate"] + np.where(after, pert.roll_gyro_bias_step, 0.0)
+            # a bias that steps within a sample, or grows linearly over roll_gyro_bias_ramp (a thermal transient)
+            grown = (tt - pert.fault_at) / pert.roll_gyro_bias_ramp if pert.roll_gyro_bias_ramp > 0.0 else 1.0
+            bias_now = pert.roll_gyro_bias_step * np.clip(grown, 0.0, 1.0)
+            sig["RollRate"] = sig["RollRate"] + np.where(after, bias_now, 0.0)
         streams[name] = MessageStream(name, tt, sig, _counters(len(tt), starts[name]))
 
     # --- steering encoder
