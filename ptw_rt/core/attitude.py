@@ -99,6 +99,9 @@ STATE = Layout(
     imu_fresh_run=1,  # consecutive cycles with new sound samples of the gyros and accelerometer (`_roll_gyro_step`)
     step_ms=1,  # (rad/s)^2, running mean square of the roll-gyro step statistic in healthy riding (its noise)
     step_last=1,  # rad/s, that statistic in the previous cycle (0 without one)
+    step_candidate=1,  # rad/s, a step the last cycle's statistic found, taken if this cycle's confirms it (else 0)
+    step_before=1,  # rad/s, the statistic before that candidate
+    step_doubt=1,  # share of the step taken that its uncertainty adds (`_roll_gyro_step`)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -127,6 +130,9 @@ STATE = Layout(
     ST_IMU_FRESH_RUN,
     ST_STEP_MS,
     ST_STEP_LAST,
+    ST_STEP_CANDIDATE,
+    ST_STEP_BEFORE,
+    ST_STEP_DOUBT,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -188,7 +194,8 @@ INITIAL_VY_SD = 0.5  # m/s: a gripping vehicle's sideslip velocity, a priori
 GYRO_STEP_Z = 6.0
 GYRO_STEP_MIN = 0.02  # rad/s: the smallest step taken, whatever the noise
 GYRO_STEP_NOISE_TIME = 5.0  # s: time constant of the comparison's running mean square
-GYRO_STEP_SIZE_DOUBT = 0.1  # share of a step taken that its uncertainty adds beyond the comparison's noise
+GYRO_STEP_SIZE_DOUBT = 0.1  # share of a step taken that its uncertainty adds beyond the comparison's noise ...
+GYRO_STEP_SPIKE_DOUBT = 0.4  # ... or, where it may have been a spike, this: the roll's 3 sd then outgrow its drift
 GYRO_STEP_MIN_HEIGHT = 0.1  # m: an IMU lower than this sees too little of the roll acceleration to check the gyro
 INITIAL_AV_SD = 1.0  # m/s^2: its rate
 
@@ -433,19 +440,28 @@ def _restart_sideslip(x: np.ndarray, P: np.ndarray) -> None:
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _roll_gyro_step(st: np.ndarray, prm: np.ndarray, prev: np.ndarray, p: float, f_y: float, sound: bool) -> float:
-    """The roll-gyro bias step [rad/s] between the previous cycle's sample and the one before it, or 0 (module
-    constants GYRO_STEP_*). With Dp_k the gyro's change into sample k and the trapezoid of the lateral specific force
-    f over the same interval, rho_k = Dp_k - dt (f_k + f_{k-1}) / (2 h) is what of the gyro's change the lever arm
-    did not feel, plus slow terms (the turn's u r, gravity, the sideslip) that a second difference removes: a step b
-    at sample k makes rho_k - (rho_{k-1} + rho_{k+1}) / 2 = b, healthy riding its noise. The same statistic a cycle
-    earlier, centred on the sample before the step, is -b/2: a step is taken where the statistic follows one of
-    the other sign and at least a quarter its size (else a step of twice the limit was taken a cycle early, as -b/2:
-    the +0.1 rad/s step on `handling_40_120`), and where the gyro's own share is beyond the limit as well (a kick of
-    the accelerometer alone is not the gyro's). `sound`: this cycle's samples are new, sound and riding; four in a
-    row are needed."""
+    """The roll-gyro bias step [rad/s] that began two samples before this cycle's, or 0 (module constants
+    GYRO_STEP_*); with it, ST_STEP_DOUBT, the share of it its uncertainty adds. With Dp_k the gyro's change into
+    sample k and the trapezoid of the lateral specific force f over the same interval, rho_k = Dp_k - dt (f_k +
+    f_{k-1}) / (2 h) is what of the gyro's change the lever arm did not feel, plus slow terms (the turn's u r,
+    gravity, the sideslip) that a second difference removes: S_k = rho_k - (rho_{k-1} + rho_{k+1}) / 2. Healthy
+    riding makes S its noise; a step b at sample m makes S_{m-1}, S_m, S_{m+1} = -b/2, b, -b/2. A candidate is an S
+    beyond the limit whose gyro share is beyond it too (a kick of the accelerometer alone is not the gyro's) and
+    that follows an S of the other sign; it is taken a cycle later if its two neighbours' mean is a step's, -S/2
+    within a quarter of S (a step of twice the limit makes its -b/2 a candidate first, which its successor b
+    does not confirm: that b is the next candidate). A one-sample spike A of the gyro (a glitch, or a garbage frame
+    whose counter matched, within the input checks) makes -A/2, 1.5 A, -1.5 A, A/2: its lobes' neighbours' mean is
+    -2/3 S, a step's shape within the test's tolerance, but they differ by 2/3 S where a step's are equal.
+    Neighbours that differ beyond 4 sd of their noise are a spike's: no step. Nearer the noise (a 0.05 rad/s step is
+    9 sd of it) the two cannot be told apart for sure: a step whose neighbours differ by more than a third of it is
+    taken with the doubt GYRO_STEP_SPIKE_DOUBT (its uncertainty covers it being no step at all: the roll is not
+    VALID until the data have pinned the bias again), else with GYRO_STEP_SIZE_DOUBT. `sound`: this cycle's samples
+    are new, sound and riding; four in a row."""
     h = prm[A_IMU_HEIGHT]
     last = st[ST_STEP_LAST]
+    candidate = st[ST_STEP_CANDIDATE]
     st[ST_STEP_LAST] = 0.0
+    st[ST_STEP_CANDIDATE] = 0.0
     if not sound or h < GYRO_STEP_MIN_HEIGHT:
         st[ST_IMU_FRESH_RUN] = 0.0
         return 0.0
@@ -457,14 +473,29 @@ def _roll_gyro_step(st: np.ndarray, prm: np.ndarray, prev: np.ndarray, p: float,
         st[ST_STEP_MS] = 5.0 * prm[A_R_STANDSTILL_RATE] ** 2 + (0.5 * dt / h * prm[A_R_LATERAL]) ** 2
     p1, p2, p3 = prev[PREV_P], prev[PREV_P2], prev[PREV_P3]
     f1, f2, f3 = prev[PREV_FY], prev[PREV_FY2], prev[PREV_FY3]
+    k = 0.5 * dt / h
+    rho_before, rho, rho_after = (p2 - p3) - k * (f2 + f3), (p1 - p2) - k * (f1 + f2), (p - p1) - k * (f_y + f1)
+    stat = rho - 0.5 * (rho_before + rho_after)
+    st[ST_STEP_LAST] = stat
+    if candidate != 0.0:
+        before = st[ST_STEP_BEFORE]
+        mean = 0.5 * (before + stat)
+        differ = abs(before - stat)
+        if 0.25 * candidate * candidate <= -mean * candidate <= 0.75 * candidate * candidate:
+            if differ > 4.0 * math.sqrt(2.0 * st[ST_STEP_MS]):
+                return 0.0  # a spike's neighbours: neither it nor its next lobe (this S) is a step
+            st[ST_STEP_DOUBT] = GYRO_STEP_SPIKE_DOUBT if 3.0 * differ > abs(candidate) else GYRO_STEP_SIZE_DOUBT
+            return candidate
+        # not a step's shape: the candidate was the -b/2 before a large step's b, which this S may be
     gyro = (p1 - p2) - 0.5 * ((p2 - p3) + (p - p1))
-    felt = 0.5 * dt / h * ((f1 + f2) - 0.5 * ((f2 + f3) + (f_y + f1)))
-    step = gyro - felt
     limit = max(GYRO_STEP_Z * math.sqrt(st[ST_STEP_MS]), GYRO_STEP_MIN)
-    if abs(step) > limit and abs(gyro) > limit and gyro * step > 0.0 and -last * step > 0.25 * step * step:
-        return step  # (the samples are re-based on it by the caller: the next cycle's statistic starts from 0)
-    st[ST_STEP_LAST] = step
-    st[ST_STEP_MS] += min(dt / GYRO_STEP_NOISE_TIME, 1.0) * (min(step * step, limit * limit) - st[ST_STEP_MS])
+    if abs(stat) > limit and abs(gyro) > limit and gyro * stat > 0.0 and last * stat < 0.0:
+        st[ST_STEP_CANDIDATE] = stat
+        st[ST_STEP_BEFORE] = last
+        return 0.0
+    if candidate != 0.0:
+        return 0.0  # what follows a candidate is no noise sample either
+    st[ST_STEP_MS] += min(dt / GYRO_STEP_NOISE_TIME, 1.0) * (min(stat * stat, limit * limit) - st[ST_STEP_MS])
     return 0.0
 
 
@@ -591,19 +622,16 @@ def attitude_step(
         prev[PREV_RG] = q * s0 + r * c0
         prev[PREV_RG2] = prev[PREV_RG]
 
-    # ---- 0. a step of the roll gyro's bias, taken at once: the step's sample and the one before it are this
-    # cycle's and the previous one's; the samples before the step become what the gyro would have read with it, so
-    # no derivative of this cycle or the next sees a roll acceleration that was not there ----
+    # ---- 0. a step of the roll gyro's bias, taken at once: it began in the sample before the previous one, so
+    # this cycle's lever-arm derivative (this sample's less that one's) is already clean; the two before it saw it ----
     sound = imu_fresh and rates_ok and accel_ok and rates_trusted and not saturated
     step = _roll_gyro_step(st, prm, prev, p, f_y, sound and u >= prm[A_COURSE_MIN_SPEED])
     out[OUT_GYRO_STEP] = step
     if step != 0.0:
         x[X_BP] += step
-        x[X_PHI] -= 0.5 * dt * step  # the last prediction integrated half a cycle of it (the trapezoid)
-        prev[PREV_P2] += step
-        prev[PREV_P3] += step
-        P[X_BP, X_BP] += st[ST_STEP_MS] + (GYRO_STEP_SIZE_DOUBT * step) ** 2
-        P[X_PHI, X_PHI] += (0.5 * dt * step) ** 2
+        x[X_PHI] -= 1.5 * dt * step  # the last two predictions integrated 1.5 cycles of it (the trapezoid)
+        P[X_BP, X_BP] += st[ST_STEP_MS] + (st[ST_STEP_DOUBT] * step) ** 2
+        P[X_PHI, X_PHI] += (1.5 * dt * step) ** 2
 
     # ---- 1. measurements of the previous cycle, with central-difference lever-arm derivatives ----
     phi = x[X_PHI]

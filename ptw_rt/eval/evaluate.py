@@ -49,11 +49,11 @@ def before_crash(t: np.ndarray, ride: Ride) -> np.ndarray:
 
 def monitor_alarms(t: np.ndarray, reasons: np.ndarray, ride: Ride) -> dict:
     """Each monitor's alarms on the ride: cycles raised, and, where the perturbation injects a fault (yaw-gyro
-    scale, roll-gyro bias step, steer-encoder step), the time from the fault to its first alarm (None: none
-    before the ride ends). On a healthy ride every alarm is a false one; a ride the simulated rider crashes
-    counts until CRASH_MARGIN_S before the crash."""
+    scale, a gyro bias step, steer-encoder step: `Perturbation.injects_fault`), the time from the fault to its first
+    alarm (None: none before the ride ends). On a healthy ride every alarm is a false one; a ride the simulated
+    rider crashes counts until CRASH_MARGIN_S before the crash."""
     p = ride.perturbation
-    injected = p.yaw_gyro_scale != 1.0 or p.roll_gyro_bias_step != 0.0 or p.steer_offset_step != 0.0
+    injected = p.injects_fault
     bits = reasons.astype(np.int64)
     riding = before_crash(t, ride)
     out: dict = {"fault_at_s": p.fault_at if injected else None}

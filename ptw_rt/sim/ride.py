@@ -124,6 +124,7 @@ PERTURB_KEYS = {
     "yaw_gyro_scale": "factor on the yaw-rate gyro's reading (a scale error)",
     "roll_gyro_bias_step": "rad/s added to the roll-rate gyro's reading (a bias step)",
     "roll_gyro_bias_ramp": "s over which that bias grows from 0 to its size (0: a step within one sample)",
+    "yaw_gyro_bias_step": "rad/s added to the yaw-rate gyro's reading (a bias step)",
     "steer_offset_step": "counts added to the steering encoder's reading (a slipped encoder)",
 }
 
@@ -148,10 +149,21 @@ class Perturbation:
     yaw_gyro_scale: float = 1.0
     roll_gyro_bias_step: float = 0.0
     roll_gyro_bias_ramp: float = 0.0
+    yaw_gyro_bias_step: float = 0.0
     steer_offset_step: float = 0.0
 
     def as_dict(self) -> dict[str, float | None]:
         return {k: getattr(self, k) for k in PERTURB_KEYS}
+
+    @property
+    def injects_fault(self) -> bool:
+        """A sensor fault no input check can see is injected at `fault_at` (the keys after it in PERTURB_KEYS)."""
+        return (
+            self.yaw_gyro_scale != 1.0
+            or self.roll_gyro_bias_step != 0.0
+            or self.yaw_gyro_bias_step != 0.0
+            or self.steer_offset_step != 0.0
+        )
 
 
 def parse_perturbations(items: list[str] | None) -> Perturbation:
@@ -183,8 +195,8 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
             raise UserFacingError(f"--perturb {item!r}: fault_at must be within 0 .. 3600 s")
         if key == "yaw_gyro_scale" and not 0.2 <= value <= 5.0:
             raise UserFacingError(f"--perturb {item!r}: yaw_gyro_scale is a factor, expected 0.2 .. 5")
-        if key == "roll_gyro_bias_step" and not abs(value) <= 1.0:
-            raise UserFacingError(f"--perturb {item!r}: roll_gyro_bias_step must be within -1 .. 1 rad/s")
+        if key in ("roll_gyro_bias_step", "yaw_gyro_bias_step") and not abs(value) <= 1.0:
+            raise UserFacingError(f"--perturb {item!r}: {key} must be within -1 .. 1 rad/s")
         if key == "roll_gyro_bias_ramp" and not 0.0 <= value <= 3600.0:
             raise UserFacingError(f"--perturb {item!r}: roll_gyro_bias_ramp must be within 0 .. 3600 s")
         if key in ("steer_offset", "steer_offset_step") and not (-100 <= value <= 100 and value == int(value)):

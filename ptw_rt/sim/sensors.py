@@ -229,6 +229,7 @@ def make_sensor_streams(
             grown = (tt - pert.fault_at) / pert.roll_gyro_bias_ramp if pert.roll_gyro_bias_ramp > 0.0 else 1.0
             bias_now = pert.roll_gyro_bias_step * np.clip(grown, 0.0, 1.0)
             sig["RollRate"] = sig["RollRate"] + np.where(after, bias_now, 0.0)
+            sig["YawRate"] = sig["YawRate"] + np.where(after, pert.yaw_gyro_bias_step, 0.0)
         streams[name] = MessageStream(name, tt, sig, _counters(len(tt), starts[name]))
 
     # --- steering encoder
