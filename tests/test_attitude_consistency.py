@@ -40,6 +40,8 @@ def _run(scenario: str, perturb: list[str]):
 def test_healthy_rides_raise_no_alarm(scenario):
     t, scored, roll_valid, flagged, err_deg = _run(scenario, [])
     assert not flagged.any()
+    ev = evaluate_ride(simulate(scenario))
+    assert not (ev.estimates[:, L.E_REASONS].astype(int) & L.REASON_GYRO_STEP).any()  # no gyro step taken either
     assert roll_valid[scored].mean() > 0.95
 
 
@@ -215,7 +217,12 @@ def test_roll_gyro_bias_step_is_taken_at_once(bias):
     roll_valid = (E[:, L.E_VALID].astype(int) & L.V_ROLL) != 0
     err_deg = np.degrees(np.abs(E[:, L.E_ROLL] - ev.truth["roll"]))
     assert err_deg[ev.mask & roll_valid].max() < 0.5
-    assert not (E[:, L.E_REASONS].astype(int) & L.REASON_ATTITUDE_INCONSISTENT).any()
+    reasons = E[:, L.E_REASONS].astype(int)
+    assert not (reasons & L.REASON_ATTITUDE_INCONSISTENT).any()
+    # the fault is said on the bus: EST_Status.ReasonBits bit 11 from the cycle it is taken, for the hold time (1 s)
+    said = (reasons & L.REASON_GYRO_STEP) != 0
+    assert said[taken[0] + 1] and said.sum() == pytest.approx(100, abs=2)
+    assert (E[said, L.E_MODE] == L.MODE_DEGRADED).all()
 
 
 @pytest.mark.slow

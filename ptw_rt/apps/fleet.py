@@ -34,7 +34,7 @@ __all__ = ["FLEET_COLUMNS", "fleet_row", "read_list_file", "run_jobs", "write_fl
 MAX_LIST_BYTES = 16 * 1024 * 1024  # a list file of ~100 000 paths
 MAX_LIST_ENTRIES = 200_000
 DASK_CONNECT_TIMEOUT_S = 10.0  # dask's connect timeout; the handshake gets 5 s more
-SENSOR_FAULT_REASONS = ("sensor_stale", "out_of_range", "decode_errors", "counter_jumps")
+SENSOR_FAULT_REASONS = ("sensor_stale", "out_of_range", "decode_errors", "counter_jumps", "gyro_step")
 
 FLEET_COLUMNS = (
     "log",

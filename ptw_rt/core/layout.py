@@ -54,6 +54,7 @@ REASON_OVERRUN = 1 << 7
 REASON_SEND_FAILURE = 1 << 8
 REASON_IMPLAUSIBLE = 1 << 9  # the published channel and the UIHOSMO on the sensors disagree (diagnostics)
 REASON_ATTITUDE_INCONSISTENT = 1 << 10  # the attitude filter's innovations contradict it (a gyro fault)
+REASON_GYRO_STEP = 1 << 11  # the roll gyro's bias stepped within a sample, and the attitude filter took the step
 # the input checks' bits: this cycle's value of some sensor is a held or doubtful one (stale, out of range, a broken
 # rolling counter, an undecodable frame). What learns or compares on the cycle's values skips such a cycle.
 INPUT_FAULTS = REASON_STALE | REASON_OUT_OF_RANGE | REASON_COUNTER_JUMPS | REASON_DECODE_ERRORS
@@ -69,6 +70,7 @@ REASON_NAMES = (
     "send_failure",
     "implausible",
     "attitude_inconsistent",
+    "gyro_step",
 )
 
 # EST_Status.Mode

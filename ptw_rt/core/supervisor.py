@@ -57,6 +57,7 @@ from ptw_rt.core.layout import (
     REASON_DECODE_ERRORS,
     REASON_DIVERGING,
     REASON_GPS_LOST,
+    REASON_GYRO_STEP,
     REASON_IMPLAUSIBLE,
     REASON_OUT_OF_RANGE,
     REASON_SPEED_LOW,
@@ -417,6 +418,8 @@ def supervisor_stage(
     # the published channel's own resets only: the seed observers (diagnostics' UIHOSMO, the stiffness stage's
     # adaptive observer) are cross-checks whose blow-up says nothing about what is published
     diverged = cond[cnd.OUT_DIVERGED] != 0.0 or lateral[lat.OUT_DIVERGED] != 0.0
+    if attitude[att.OUT_GYRO_STEP] != 0.0:  # a sensor fault, found and taken: said for the hold time (an event)
+        reasons_now |= REASON_GYRO_STEP
     _raise(st, (reasons_now | REASON_DIVERGING) if diverged else reasons_now, prm[P_REASON_HOLD])
     if attitude[att.OUT_INCONSISTENT] != 0.0:  # held by the attitude stage's own monitor
         reasons_now |= REASON_ATTITUDE_INCONSISTENT

@@ -37,7 +37,11 @@ SETTLE_S = 5.0  # s: observers start, converge (2 s) and the fusion filter forge
 CRASH_MARGIN_S = 1.0
 TRANSIENT_SCENARIOS = ("dlc_50", "dlc_100", "slalom_30")
 # the monitors a sensor fault the input checks cannot see should raise (issue #16), by their reason bits
-MONITORS = (("plausibility", L.REASON_IMPLAUSIBLE), ("attitude_consistency", L.REASON_ATTITUDE_INCONSISTENT))
+MONITORS = (
+    ("plausibility", L.REASON_IMPLAUSIBLE),
+    ("attitude_consistency", L.REASON_ATTITUDE_INCONSISTENT),
+    ("gyro_step", L.REASON_GYRO_STEP),
+)
 
 
 def before_crash(t: np.ndarray, ride: Ride) -> np.ndarray:
