@@ -54,6 +54,7 @@ def test_no_false_alarm_on_healthy_rides(scenario, perturb):
         "fault_at_s": None,
         "plausibility": {"cycles": 0},
         "attitude_consistency": {"cycles": 0},
+        "gyro_step": {"cycles": 0},
     }
 
 
