@@ -101,7 +101,6 @@ STATE = Layout(
     step_last=1,  # rad/s, that statistic in the previous cycle (0 without one)
     step_candidate=1,  # rad/s, a step the last cycle's statistic found, taken if this cycle's confirms it (else 0)
     step_before=1,  # rad/s, the statistic before that candidate
-    step_doubt=1,  # share of the step taken that its uncertainty adds (`_roll_gyro_step`)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -132,7 +131,6 @@ STATE = Layout(
     ST_STEP_LAST,
     ST_STEP_CANDIDATE,
     ST_STEP_BEFORE,
-    ST_STEP_DOUBT,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -182,22 +180,17 @@ NU_CLIP = 2.0  # standard deviations: bound of each whitened innovation in the c
 # for the rest of the ride, and with them the yaw-gyro bias's only reference while riding
 COURSE_REINIT_FIXES = 10
 INITIAL_VY_SD = 0.5  # m/s: a gripping vehicle's sideslip velocity, a priori
+INITIAL_AV_SD = 1.0  # m/s^2: its rate
 # A step of the roll-rate gyro's bias (a shock, a sensor that restarts on a stale calibration) is a jump of its level
-# between two samples that no roll acceleration made: the body's roll rate changes through a roll acceleration, and
-# the accelerometer, imu_height above the ground, feels it as h phi''. Riding straight nothing else can tell such a
-# step from a sideslip within the 1 s the roll's tolerance leaves (docs/estimator.md, "Why the first seconds stay
-# VALID"), and the roll ran 2.9 deg/s off, VALID, for up to 2.5 s. So `_roll_gyro_step` compares, sample by
-# sample, the gyro's change with the one the accelerometer saw: a step beyond GYRO_STEP_Z standard deviations of
-# that comparison's own noise in healthy riding (its running mean square, from the configured gyro and lateral
-# noises at the start) is taken at once as a step of the bias, with its uncertainty. Its one ambiguity: a roll
-# acceleration that jumps within one sample reads as a step of up to half the jump x dt (GYRO_STEP_MIN: 4 rad/s^2)
-GYRO_STEP_Z = 6.0
-GYRO_STEP_MIN = 0.02  # rad/s: the smallest step taken, whatever the noise
+# between two samples that no roll acceleration made; riding straight nothing else tells it from a sideslip within
+# the 1 s the roll's tolerance leaves (docs/estimator.md, "A step within one sample"). `_roll_gyro_step` finds it
+# from the gyro's change against what the accelerometer, imu_height above the ground, felt:
+GYRO_STEP_Z = 6.0  # standard deviations of that comparison's own running noise beyond which a step is a candidate
+GYRO_STEP_MIN = 0.02  # rad/s: the smallest step taken, whatever the noise (a roll-acceleration jump of 4 rad/s^2)
 GYRO_STEP_NOISE_TIME = 5.0  # s: time constant of the comparison's running mean square
 GYRO_STEP_SIZE_DOUBT = 0.1  # share of a step taken that its uncertainty adds beyond the comparison's noise ...
 GYRO_STEP_SPIKE_DOUBT = 0.4  # ... or, where it may have been a spike, this: the roll's 3 sd then outgrow its drift
 GYRO_STEP_MIN_HEIGHT = 0.1  # m: an IMU lower than this sees too little of the roll acceleration to check the gyro
-INITIAL_AV_SD = 1.0  # m/s^2: its rate
 
 # ---- parameters (float64 vector: `attitude_params` builds the filter's from the config, `build_params` all) ----
 PARAMS = Layout(
@@ -439,9 +432,11 @@ def _restart_sideslip(x: np.ndarray, P: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
-def _roll_gyro_step(st: np.ndarray, prm: np.ndarray, prev: np.ndarray, p: float, f_y: float, sound: bool) -> float:
-    """The roll-gyro bias step [rad/s] that began two samples before this cycle's, or 0 (module constants
-    GYRO_STEP_*); with it, ST_STEP_DOUBT, the share of it its uncertainty adds. With Dp_k the gyro's change into
+def _roll_gyro_step(
+    st: np.ndarray, prm: np.ndarray, prev: np.ndarray, p: float, f_y: float, sound: bool
+) -> tuple[float, float]:
+    """The roll-gyro bias step [rad/s] that began two samples before this cycle's (0: none; module constants
+    GYRO_STEP_*), and the share of it its uncertainty adds. With Dp_k the gyro's change into
     sample k and the trapezoid of the lateral specific force f over the same interval, rho_k = Dp_k - dt (f_k +
     f_{k-1}) / (2 h) is what of the gyro's change the lever arm did not feel, plus slow terms (the turn's u r,
     gravity, the sideslip) that a second difference removes: S_k = rho_k - (rho_{k-1} + rho_{k+1}) / 2. Healthy
@@ -464,17 +459,19 @@ def _roll_gyro_step(st: np.ndarray, prm: np.ndarray, prev: np.ndarray, p: float,
     st[ST_STEP_CANDIDATE] = 0.0
     if not sound or h < GYRO_STEP_MIN_HEIGHT:
         st[ST_IMU_FRESH_RUN] = 0.0
-        return 0.0
+        return 0.0, 0.0
     st[ST_IMU_FRESH_RUN] += 1.0
     if st[ST_IMU_FRESH_RUN] < 4.0:
-        return 0.0
+        return 0.0, 0.0
     dt = prm[A_DT]
     if not st[ST_STEP_MS] > 0.0:  # the comparison's noise from the configured sensors' until riding has shown it
         st[ST_STEP_MS] = 5.0 * prm[A_R_STANDSTILL_RATE] ** 2 + (0.5 * dt / h * prm[A_R_LATERAL]) ** 2
     p1, p2, p3 = prev[PREV_P], prev[PREV_P2], prev[PREV_P3]
     f1, f2, f3 = prev[PREV_FY], prev[PREV_FY2], prev[PREV_FY3]
     k = 0.5 * dt / h
-    rho_before, rho, rho_after = (p2 - p3) - k * (f2 + f3), (p1 - p2) - k * (f1 + f2), (p - p1) - k * (f_y + f1)
+    dp_before, dp, dp_after = p2 - p3, p1 - p2, p - p1
+    gyro = dp - 0.5 * (dp_before + dp_after)  # the gyro's own share of the statistic
+    rho_before, rho, rho_after = dp_before - k * (f2 + f3), dp - k * (f1 + f2), dp_after - k * (f_y + f1)
     stat = rho - 0.5 * (rho_before + rho_after)
     st[ST_STEP_LAST] = stat
     if candidate != 0.0:
@@ -483,20 +480,18 @@ def _roll_gyro_step(st: np.ndarray, prm: np.ndarray, prev: np.ndarray, p: float,
         differ = abs(before - stat)
         if 0.25 * candidate * candidate <= -mean * candidate <= 0.75 * candidate * candidate:
             if differ > 4.0 * math.sqrt(2.0 * st[ST_STEP_MS]):
-                return 0.0  # a spike's neighbours: neither it nor its next lobe (this S) is a step
-            st[ST_STEP_DOUBT] = GYRO_STEP_SPIKE_DOUBT if 3.0 * differ > abs(candidate) else GYRO_STEP_SIZE_DOUBT
-            return candidate
+                return 0.0, 0.0  # a spike's neighbours: neither it nor its next lobe (this S) is a step
+            return candidate, GYRO_STEP_SPIKE_DOUBT if 3.0 * differ > abs(candidate) else GYRO_STEP_SIZE_DOUBT
         # not a step's shape: the candidate was the -b/2 before a large step's b, which this S may be
-    gyro = (p1 - p2) - 0.5 * ((p2 - p3) + (p - p1))
     limit = max(GYRO_STEP_Z * math.sqrt(st[ST_STEP_MS]), GYRO_STEP_MIN)
     if abs(stat) > limit and abs(gyro) > limit and gyro * stat > 0.0 and last * stat < 0.0:
         st[ST_STEP_CANDIDATE] = stat
         st[ST_STEP_BEFORE] = last
-        return 0.0
+        return 0.0, 0.0
     if candidate != 0.0:
-        return 0.0  # what follows a candidate is no noise sample either
+        return 0.0, 0.0  # what follows a candidate is no noise sample either
     st[ST_STEP_MS] += min(dt / GYRO_STEP_NOISE_TIME, 1.0) * (min(stat * stat, limit * limit) - st[ST_STEP_MS])
-    return 0.0
+    return 0.0, 0.0
 
 
 @njit(cache=True)
@@ -625,12 +620,12 @@ def attitude_step(
     # ---- 0. a step of the roll gyro's bias, taken at once: it began in the sample before the previous one, so
     # this cycle's lever-arm derivative (this sample's less that one's) is already clean; the two before it saw it ----
     sound = imu_fresh and rates_ok and accel_ok and rates_trusted and not saturated
-    step = _roll_gyro_step(st, prm, prev, p, f_y, sound and u >= prm[A_COURSE_MIN_SPEED])
+    step, doubt = _roll_gyro_step(st, prm, prev, p, f_y, sound and u >= prm[A_COURSE_MIN_SPEED])
     out[OUT_GYRO_STEP] = step
     if step != 0.0:
         x[X_BP] += step
         x[X_PHI] -= 1.5 * dt * step  # the last two predictions integrated 1.5 cycles of it (the trapezoid)
-        P[X_BP, X_BP] += st[ST_STEP_MS] + (st[ST_STEP_DOUBT] * step) ** 2
+        P[X_BP, X_BP] += st[ST_STEP_MS] + (doubt * step) ** 2
         P[X_PHI, X_PHI] += (1.5 * dt * step) ** 2
 
     # ---- 1. measurements of the previous cycle, with central-difference lever-arm derivatives ----

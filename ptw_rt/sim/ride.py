@@ -157,7 +157,8 @@ class Perturbation:
 
     @property
     def injects_fault(self) -> bool:
-        """A sensor fault no input check can see is injected at `fault_at` (the keys after it in PERTURB_KEYS)."""
+        """A sensor fault no input check can see is injected at `fault_at` (a yaw-gyro scale, a gyro bias step, a
+        slipped encoder; `roll_gyro_bias_ramp` only shapes the roll gyro's)."""
         return (
             self.yaw_gyro_scale != 1.0
             or self.roll_gyro_bias_step != 0.0
