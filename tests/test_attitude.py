@@ -23,8 +23,9 @@ BIAS_GYRO = (0.003, -0.002, 0.0035)
 BIAS_AY = 0.05
 
 
-def _ride(phi, r, u, h, x_i, seed=1, noise=True):
-    """Sensor arrays for roll phi(t), ground yaw rate r(t), speed u(t) (sideslip zero)."""
+def _ride(phi, r, u, h, x_i, seed=1, noise=True, slope=0.0):
+    """Sensor arrays for roll phi(t), ground yaw rate r(t), speed u(t) (sideslip zero), on a road of constant
+    `slope` [rad, uphill]: the vehicle turns about the vertical, and its pitched roll axis sees -r sin(slope)."""
     rng = np.random.default_rng(seed)
     n = len(phi)
     phid = np.gradient(phi, DT)
@@ -35,20 +36,26 @@ def _ride(phi, r, u, h, x_i, seed=1, noise=True):
     a_z = h * (s * phidd + c * phid**2)
     gn = 0.002 if noise else 0.0
     an = 0.03 if noise else 0.0
-    p = phid + BIAS_GYRO[0] + gn * rng.standard_normal(n)
-    q = r * s + BIAS_GYRO[1] + gn * rng.standard_normal(n)
-    rb = r * c + BIAS_GYRO[2] + gn * rng.standard_normal(n)
-    fy = a_y * c + (a_z - G) * s + BIAS_AY + an * rng.standard_normal(n)
-    fz = -a_y * s + (a_z - G) * c + an * rng.standard_normal(n)
+    ss, cs = math.sin(slope), math.cos(slope)
+    p = phid - r * ss + BIAS_GYRO[0] + gn * rng.standard_normal(n)
+    q = r * s * cs + BIAS_GYRO[1] + gn * rng.standard_normal(n)
+    rb = r * c * cs + BIAS_GYRO[2] + gn * rng.standard_normal(n)
+    fy = a_y * c + (a_z - G * cs) * s + BIAS_AY + an * rng.standard_normal(n)
+    fz = -a_y * s + (a_z - G * cs) * c + an * rng.standard_normal(n)
     psi = np.cumsum(r) * DT
     return p, q, rb, fy, fz, psi
 
 
-def _run(phi, r, u, h=0.5, x_i=0.0, filter_h=None, gps_from=0.0, gps_until=math.inf, seed=1):
+def _run(
+    phi, r, u, h=0.5, x_i=0.0, filter_h=None, gps_from=0.0, gps_until=math.inf, seed=1, slope=0.0, accel_x_offset=None
+):
+    """The filter on `_ride`'s sensors; `accel_x_offset`: the speed stage's longitudinal offset fed every cycle
+    (None: none, as without GPS speed)."""
     settings = load_settings(DEFAULT_CONFIG)
     tuning = settings.estimator.attitude
     prm = att.attitude_params(DT, G, h if filter_h is None else filter_h, x_i, tuning, 0.1)
-    p, q, rb, fy, fz, psi = _ride(phi, r, u, h, x_i, seed)
+    p, q, rb, fy, fz, psi = _ride(phi, r, u, h, x_i, seed, slope=slope)
+    offset = math.nan if accel_x_offset is None else accel_x_offset
     st = att.new_state()
     out = np.zeros(att.OUT_SIZE)
     roll = np.zeros(len(phi))
@@ -61,7 +68,22 @@ def _run(phi, r, u, h=0.5, x_i=0.0, filter_h=None, gps_from=0.0, gps_until=math.
         course = (course + math.pi) % (2 * math.pi) - math.pi
         u_sd = 0.1 if gps_from <= t < gps_until else 2.0
         att.attitude_step(
-            st, out, prm, p[k], q[k], rb[k], fy[k], fz[k], u[k], u_sd, True, True, course, course_new, False
+            st,
+            out,
+            prm,
+            p[k],
+            q[k],
+            rb[k],
+            fy[k],
+            fz[k],
+            u[k],
+            u_sd,
+            True,
+            True,
+            course,
+            course_new,
+            False,
+            accel_x_offset=offset,
         )
         roll[k] = out[att.OUT_ROLL]
         sd[k] = out[att.OUT_ROLL_SD]
@@ -115,6 +137,36 @@ def test_hard_braking_in_a_curve():
     roll, _, _ = _run(phi, r, u, h=0.6, x_i=0.2)
     scored = t > 5
     assert _rms_deg(roll[scored] - phi[scored]) < 0.35
+
+
+def _winding(t, lean_deg=20.0, period=8.0, u0=15.0):
+    """Turns of either hand, one every `period` / 2 s, after 10 s of straight riding."""
+    u = np.full_like(t, u0)
+    phi = math.radians(lean_deg) * np.sin(2 * math.pi * t / period) * _smooth_step(t, 10, 12)
+    return phi, G * np.tan(phi) / u, u
+
+
+@pytest.mark.parametrize("slope_deg", [4.0, -4.0])
+def test_on_a_slope_the_turns_teach_the_pitch_and_the_roll_stays_right(slope_deg):
+    """On a 4 deg slope (7 %) a turn about the vertical leaks tan(slope) r_ground into the roll gyro: integrated
+    as the roll, 0.6 deg/s at 0.14 rad/s. The pitch state takes it, from the turns and the speed stage's offset
+    (here g sin(slope) + 0.03 m/s^2 of accelerometer bias)."""
+    slope = math.radians(slope_deg)
+    t = np.arange(0, 60, DT)
+    phi, r, u = _winding(t)
+    roll, _, out = _run(phi, r, u, slope=slope, accel_x_offset=G * math.sin(slope) + 0.03)
+    scored = t > 30
+    assert _rms_deg(roll[scored] - phi[scored]) < 0.2
+    assert math.degrees(out[att.OUT_PITCH]) == pytest.approx(slope_deg, abs=0.5)
+
+
+def test_without_an_offset_the_turns_alone_teach_the_pitch():
+    t = np.arange(0, 90, DT)
+    phi, r, u = _winding(t)
+    roll, _, out = _run(phi, r, u, slope=math.radians(3.0))
+    scored = t > 60
+    assert _rms_deg(roll[scored] - phi[scored]) < 0.25
+    assert math.degrees(out[att.OUT_PITCH]) == pytest.approx(3.0, abs=0.75)
 
 
 def test_gps_dropout_keeps_roll_bounded():

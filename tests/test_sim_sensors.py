@@ -37,8 +37,8 @@ def record(n=5, **values):
     return rec
 
 
-def read(rec, height=0.5, forward=0.0):
-    out = imu_readings(rec, np.array([2e-3]), G, height, forward)
+def read(rec, height=0.5, forward=0.0, slope=0.0):
+    out = imu_readings(rec, np.array([2e-3]), G, height, forward, slope)
     return {k: float(v[0]) for k, v in out.items()}
 
 
@@ -107,3 +107,29 @@ def test_frame_times_jitter_phase_and_range():
     assert np.all(np.abs(d - 0.01) < 6 * 50e-6 + 1e-12)
     assert 20e-6 < np.std(t - (0.0021 + 0.01 * np.arange(1000))) < 80e-6
     assert t[0] > 0 and t[-1] <= 10.0
+
+
+def test_on_a_slope_gravity_and_the_vertical_turn_rate_have_parts_along_the_roll_axis():
+    """Uphill by 4 deg, leaning 20 deg in a steady turn: the accelerometer reads g sin(slope) forward, and the roll
+    gyro reads -r sin(slope) of the turn about the vertical (its roll axis points up the slope)."""
+    slope = math.radians(4.0)
+    m = read(record(), slope=slope)
+    assert m["AccelX"] == pytest.approx(G * math.sin(slope))
+    assert m["AccelZ"] == pytest.approx(-G * math.cos(slope))
+    phi = math.radians(20.0)
+    u = 15.0
+    r = G * math.tan(phi) / u
+    m = read(record(phi=phi, r=r, u=u), height=0.0, slope=slope)
+    assert m["RollRate"] == pytest.approx(-r * math.sin(slope))
+    assert m["YawRate"] == pytest.approx(r * math.cos(phi) * math.cos(slope))
+    assert m["PitchRate"] == pytest.approx(r * math.sin(phi) * math.cos(slope))
+
+
+def test_an_imu_mounted_pitched_reads_the_chassis_vectors_turned():
+    from ptw_rt.sim.sensors import mounted
+
+    x, y, z = mounted((np.array([0.0]), np.array([0.0]), np.array([-G])), 0.0, math.radians(3.0))
+    assert float(x[0]) == pytest.approx(G * math.sin(math.radians(3.0)))
+    assert float(z[0]) == pytest.approx(-G * math.cos(math.radians(3.0)))
+    x, y, z = mounted((np.array([0.0]), np.array([0.0]), np.array([-G])), math.radians(2.0), 0.0)
+    assert float(y[0]) == pytest.approx(-G * math.sin(math.radians(2.0)))  # as if the vehicle leaned right

@@ -30,7 +30,12 @@ In a steady turn one direction of (phi, b_q, b_r, b_ay) is still unobservable (a
 matching biases fits every constraint); straights and changes of lean remove it. The biases are random
 walks and survive a restart of the dynamic states.
 
-Extended Kalman filter on x = [phi, psi, b_p, b_q, b_r, b_ay, v_y, a_v]; innovations beyond
+- **A road that is not level**: on a slope (or with the suspension's sag) the gyro's roll axis is pitched, and the
+  turn about the vertical leaks into it: roll' = p + tan(pitch) r_ground, heading' = r_ground / cos(pitch). The
+  pitch is a state, taught by the turns (the roll drifts by tan(pitch) r_ground where the accelerometer says it does
+  not) and seeded by the speed stage's longitudinal offset, g sin(pitch) + b_ax (`speed.OUT_ACCEL_OFFSET`).
+
+Extended Kalman filter on x = [phi, psi, b_p, b_q, b_r, b_ay, pitch, b_ax, v_y, a_v]; innovations beyond
 ``gate`` standard deviations are not applied (counted in OUT_REJECTED).
 
 Stage 3 of the estimator (`attitude_stage`, at the end of this module): the filter fed from the inputs and
@@ -56,10 +61,12 @@ X_BP = 2  # rad/s, roll-gyro bias
 X_BQ = 3  # rad/s, pitch-gyro bias
 X_BR = 4  # rad/s, yaw-gyro bias
 X_BAY = 5  # m/s^2, lateral accelerometer bias
-X_VY = 6  # m/s, lateral velocity of the reference point
-X_AV = 7  # m/s^2, its derivative
-N_X = 8
-N_BIASES = X_BAY - X_BP + 1  # the biases, X_BP .. X_BAY (contiguous)
+X_PITCH = 6  # rad, the IMU's pitch off the level (a road's slope, the suspension's sag, a mount not square)
+X_BAX = 7  # m/s^2, longitudinal accelerometer bias (what of the speed stage's offset is not g sin(pitch))
+X_VY = 8  # m/s, lateral velocity of the reference point
+X_AV = 9  # m/s^2, its derivative
+N_X = 10
+N_BIASES = X_BAX - X_BP + 1  # the slow states, X_BP .. X_BAX (contiguous): kept on a restart
 N_DYNAMIC_STATES = (X_PHI, X_PSI, X_VY, X_AV)  # reset on a restart; the biases are kept
 
 # ---- state buffer layout ----
@@ -181,6 +188,17 @@ NU_CLIP = 2.0  # standard deviations: bound of each whitened innovation in the c
 COURSE_REINIT_FIXES = 10
 INITIAL_VY_SD = 0.5  # m/s: a gripping vehicle's sideslip velocity, a priori
 INITIAL_AV_SD = 1.0  # m/s^2: its rate
+# The pitch (docs/estimator.md, "A road that is not level"): roads climb and fall by up to ~6 deg (10 %), and an IMU
+# is mounted square to a degree or two. In a turn the vertical the vehicle turns about then has a part along the
+# gyro's roll axis, roll' = p + tan(pitch) r_ground: on a 3 deg slope 0.05 r, the roll off by a degree in town.
+INITIAL_PITCH_SD = 0.1  # rad, a priori
+PITCH_DRIFT = 0.005  # rad/sqrt(s): a road's slope changes (3 deg over 10 s is 2 sd of it)
+# The speed stage's longitudinal offset, g sin(pitch) + b_ax over its last 3 s against GPS, is a measurement of
+# their sum; a turn tells the pitch from the accelerometer's bias (the roll drifts by tan(pitch) r_ground). The
+# offset is a running mean whose error is correlated over seconds and holds the turns' v_y r too, so each cycle's is
+# taken with this noise (its information over 3 s is that of one 0.3 m/s^2 reading: it seeds the pitch on a
+# straight, the turns set it; trusted 10 x more, the level rides' roll was worse: docs/estimator.md)
+ACCEL_OFFSET_NOISE = 5.0  # m/s^2 per cycle
 # A step of the roll-rate gyro's bias (a shock, a sensor that restarts on a stale calibration) is a jump of its level
 # between two samples that no roll acceleration made; riding straight nothing else tells it from a sideslip within
 # the 1 s the roll's tolerance leaves (docs/estimator.md, "A step within one sample"). `_roll_gyro_step` finds it
@@ -287,6 +305,7 @@ OUTPUTS = Layout(
     bay_sd=1,  # m/s^2, standard deviation of the lateral accelerometer's bias estimate
     roll_correction=1,  # rad, what this cycle's measurement updates moved the roll by (the prediction's move not)
     gyro_step=1,  # rad/s, the roll-gyro bias step found and taken this cycle (0: none; `_roll_gyro_step`)
+    pitch=1,  # rad, the IMU's pitch off the level (X_PITCH)
     # the stage's (attitude_stage), not the filter's:
     ok=1,  # 1: the filter is initialised and every output above is finite
     rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
@@ -314,13 +333,14 @@ OUTPUTS = Layout(
     OUT_BAY_SD,
     OUT_ROLL_CORRECTION,
     OUT_GYRO_STEP,
+    OUT_PITCH,
     OUT_OK,
     OUT_REJECTED_RUN,
     OUT_CONSISTENCY,
     OUT_INCONSISTENT,
     OUT_SATURATED,
 ) = OUTPUTS.offsets
-N_FILTER_OUT = OUT_GYRO_STEP + 1  # what `attitude_step` writes
+N_FILTER_OUT = OUT_PITCH + 1  # what `attitude_step` writes
 OUT_SIZE = OUTPUTS.size
 
 
@@ -502,7 +522,7 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     keep_biases = st[ST_INIT] != 0.0
     for i in range(N_X):
         for j in range(N_X):
-            bias_block = 2 <= i <= 5 and 2 <= j <= 5
+            bias_block = X_BP <= i <= X_BAX and X_BP <= j <= X_BAX
             if not (keep_biases and bias_block):
                 P[i, j] = 0.0
     x[X_PHI] = roll
@@ -516,6 +536,10 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
             P[b, b] = prm[A_INIT_GYRO_BIAS_SD] ** 2
         x[X_BAY] = 0.0
         P[X_BAY, X_BAY] = prm[A_INIT_ACCEL_BIAS_SD] ** 2
+        x[X_BAX] = 0.0
+        P[X_BAX, X_BAX] = prm[A_INIT_ACCEL_BIAS_SD] ** 2
+        x[X_PITCH] = 0.0
+        P[X_PITCH, X_PITCH] = INITIAL_PITCH_SD**2
     st[ST_PSI_INIT] = 0.0
     st[ST_REJECTED] = 0.0
     st[ST_QUIET] = 0.0
@@ -578,13 +602,17 @@ def attitude_step(
     saturated: bool = False,
     rates_trusted: bool = True,
     imu_fresh: bool = False,
+    accel_x_offset: float = math.nan,
 ) -> None:
     """One cycle. p, q, r: body rates [rad/s]; f_y, f_z: body specific force [m/s^2]; u: forward speed and
     u_sd its standard deviation [m/s]; course [rad] valid when course_new (a fresh GPS fix at speed);
     standstill: the vehicle is known to stand still (zero rates and sideslip); saturated: a gyro reads its full
     scale (GYRO_FULL_SCALE: the rate integrated is a bound, not the rate); rates_trusted: no burst of corrupt input
     is under way (the rates may be garbage that passed the checks: they must not open the sideslip's covariance);
-    imu_fresh: p and f_y are a new sound sample of each sensor (the roll-gyro step check compares consecutive ones)."""
+    imu_fresh: p and f_y are a new sound sample of each sensor (the roll-gyro step check compares consecutive ones);
+    accel_x_offset: what the longitudinal accelerometer reads beyond the speed's rate [m/s^2] (the speed stage's,
+    learned against GPS; NaN: none), g sin(pitch) + b_ax: with the turns it gives the pitch, which the roll's
+    kinematics need (roll' = p + tan(pitch) r_ground: the vehicle turns about the vertical)."""
     dt = prm[A_DT]
     g = prm[A_G]
     h = prm[A_IMU_HEIGHT]
@@ -635,7 +663,8 @@ def attitude_step(
     bp, bq, br = x[X_BP], x[X_BQ], x[X_BR]
     q1, r1, u1 = prev[PREV_Q] - bq, prev[PREV_R] - br, prev[PREV_U]
     rg1 = q1 * s + r1 * c
-    phid1 = prev[PREV_P] - bp
+    pitch = x[X_PITCH]
+    phid1 = prev[PREV_P] - bp + math.tan(pitch) * rg1
     rejected = 0.0
     nu_lateral = 0.0
     nu_pitch = 0.0
@@ -659,9 +688,11 @@ def attitude_step(
     if prev[PREV_OK] != 0.0 and prev[PREV_RATES_OK] != 0.0:
         a_y = x[X_AV] + u1 * rg1 + prm[A_IMU_FORWARD] * rgd1 - h * rg1 * rg1 * s + h * (c * phidd1 - s * phid1 * phid1)
         a_z = h * (s * phidd1 + c * phid1 * phid1)
-        predicted = a_y * c + (a_z - g) * s + x[X_BAY]
+        g_level = g * math.cos(pitch)  # gravity's part in the plane the roll turns in
+        predicted = a_y * c + (a_z - g_level) * s + x[X_BAY]
         _clear_h(H)
-        H[X_PHI] = -a_y * s + (a_z - g) * c
+        H[X_PHI] = -a_y * s + (a_z - g_level) * c
+        H[X_PITCH] = g * math.sin(pitch) * s
         dud_rg = (u1 - 2.0 * h * rg1 * s) * c
         H[X_BQ] = -dud_rg * s
         H[X_BR] = -dud_rg * c
@@ -695,6 +726,14 @@ def attitude_step(
         H[X_BR] = s
         _update(st, H, -(q1 * c - r1 * s), prm[A_R_PITCH_RATE] ** 2, gate)
         nu_pitch = st[ST_NU]
+
+    if math.isfinite(accel_x_offset):
+        # the longitudinal accelerometer's offset against GPS: g sin(pitch) + b_ax
+        pitch = x[X_PITCH]
+        _clear_h(H)
+        H[X_PITCH] = g * math.cos(pitch)
+        H[X_BAX] = 1.0
+        _update(st, H, accel_x_offset - g * math.sin(pitch) - x[X_BAX], ACCEL_OFFSET_NOISE**2, gate)
 
     if standstill and rates_ok:
         # the true rates and the sideslip are zero: the gyros read their biases
@@ -765,27 +804,34 @@ def attitude_step(
     q1, r1 = q_mid - bq, r_mid - br
     rg1 = q1 * s + r1 * c
     pitch1 = q1 * c - r1 * s
-    d_psi = dt * rg1
+    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])
+    x[X_PHI] += dt * tan_pitch * rg1
+    d_psi = dt * rg1 / cos_pitch
     x[X_PSI] += d_psi
+    roll_per_pitch = dt * rg1 / (cos_pitch * cos_pitch)  # d(roll')/d(pitch) dt
+    psi_per_pitch = dt * rg1 * tan_pitch / cos_pitch
     ta = prm[A_SIDESLIP_ACCEL_TIME]
     tv = prm[A_SIDESLIP_TIME]
     x[X_VY] += dt * (x[X_AV] - x[X_VY] / tv)
     x[X_AV] *= 1.0 - dt / ta
-    # P <- F P F' + Q with F = I + dt A, A sparse: [phi,bp]=-1, [psi,phi]=pitch, [psi,bq]=-s, [psi,br]=-c,
-    # [vy,vy]=-1/tv, [vy,av]=1, [av,av]=-1/ta
+    # P <- F P F' + Q with F = I + dt A, A sparse: [phi,bp]=-1, [psi,phi]=pitch, [psi,bq]=-s, [psi,br]=-c (the
+    # psi row over cos(pitch) and tan(pitch) of it added to the phi row), [phi,pitch] = r_g / cos^2(pitch),
+    # [psi,pitch] = r_g tan(pitch) / cos(pitch), [vy,vy]=-1/tv, [vy,av]=1, [av,av]=-1/ta
     FP = st[ST_TMP + 3 * N_X : ST_TMP + 3 * N_X + N_X * N_X].reshape((N_X, N_X))
     for j in range(N_X):
         for i in range(N_X):
             FP[i, j] = P[i, j]
-        FP[X_PHI, j] -= dt * P[X_BP, j]
-        FP[X_PSI, j] += dt * (pitch1 * P[X_PHI, j] - s * P[X_BQ, j] - c * P[X_BR, j])
+        turn = dt * (pitch1 * P[X_PHI, j] - s * P[X_BQ, j] - c * P[X_BR, j])
+        FP[X_PHI, j] += tan_pitch * turn - dt * P[X_BP, j] + roll_per_pitch * P[X_PITCH, j]
+        FP[X_PSI, j] += turn / cos_pitch + psi_per_pitch * P[X_PITCH, j]
         FP[X_VY, j] += dt * (P[X_AV, j] - P[X_VY, j] / tv)
         FP[X_AV, j] -= dt * P[X_AV, j] / ta
     for i in range(N_X):
         for j in range(N_X):
             P[i, j] = FP[i, j]
-        P[i, X_PHI] -= dt * FP[i, X_BP]
-        P[i, X_PSI] += dt * (pitch1 * FP[i, X_PHI] - s * FP[i, X_BQ] - c * FP[i, X_BR])
+        turn = dt * (pitch1 * FP[i, X_PHI] - s * FP[i, X_BQ] - c * FP[i, X_BR])
+        P[i, X_PHI] += tan_pitch * turn - dt * FP[i, X_BP] + roll_per_pitch * FP[i, X_PITCH]
+        P[i, X_PSI] += turn / cos_pitch + psi_per_pitch * FP[i, X_PITCH]
         P[i, X_VY] += dt * (FP[i, X_AV] - FP[i, X_VY] / tv)
         P[i, X_AV] -= dt * FP[i, X_AV] / ta
     P[X_PHI, X_PHI] += prm[A_Q_ROLL] ** 2 * dt
@@ -804,6 +850,8 @@ def attitude_step(
     P[X_BQ, X_BQ] += qb
     P[X_BR, X_BR] += qb
     P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
+    P[X_BAX, X_BAX] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
+    P[X_PITCH, X_PITCH] += PITCH_DRIFT**2 * dt
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
     lat_ratio = _corner_excess(x[X_PHI], prm) / prm[A_SIDESLIP_ACCEL_REF]
     # ... and in a quick change of yaw at speed: the slip angles follow the forces, v_y' ~ (l_r - u^2 m_r / C_r) r'
@@ -839,8 +887,10 @@ def attitude_step(
     prev[PREV_RATES_OK] = 1.0 if rates_ok else 0.0
 
     out[OUT_ROLL] = phi
-    out[OUT_ROLL_RATE] = prev[PREV_P] - x[X_BP]
-    out[OUT_YAW_RATE] = prev[PREV_RG]
+    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])
+    out[OUT_ROLL_RATE] = prev[PREV_P] - x[X_BP] + tan_pitch * prev[PREV_RG]
+    out[OUT_YAW_RATE] = prev[PREV_RG] / cos_pitch
+    out[OUT_PITCH] = x[X_PITCH]
     out[OUT_ROLL_SD] = math.sqrt(max(P[X_PHI, X_PHI], 0.0))
     out[OUT_BP] = x[X_BP]
     out[OUT_BQ] = x[X_BQ]
@@ -931,6 +981,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         saturated,
         not in_burst,
         inputs[inp.OUT_IMU_FRESH] != 0.0,
+        speed[spd.OUT_ACCEL_OFFSET] if speed_known and speed[spd.OUT_GPS_LOST] == 0.0 else math.nan,
     )
     if in_burst:
         st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]

@@ -29,6 +29,11 @@ STATE = Layout(
     refused_last=1,  # m/s, the last of them
     since=1,  # s since the last GPS speed taken
     refused_share=1,  # share of the recent fixes refused (exponentially weighted over ~DOUBT_FIXES fixes)
+    # the longitudinal offset, OFFSET_TIME's running means: of the accelerometer (every cycle) and of the GPS speed
+    # (every fix taken), whose rate is the speed's; their difference is what the accelerometer reads beyond it
+    mean_accel=1,
+    mean_speed=1,
+    offset=1,
     ring0=1,
 )
 (
@@ -40,6 +45,9 @@ STATE = Layout(
     SPD_REFUSED_LAST,
     SPD_SINCE,
     SPD_REFUSED_SHARE,
+    SPD_MEAN_ACCEL,
+    SPD_MEAN_SPEED,
+    SPD_OFFSET,
     SPD_RING0,
 ) = STATE.offsets
 
@@ -58,6 +66,13 @@ REACQUIRE_FIXES = 10
 # walked the speed 6 m/s off over 57 s). Its fixes are then not taken and the speed dead-reckons as in an outage,
 # until the share of refusals falls back (a healthy receiver's glitch is one fix in many) or REACQUIRE_FIXES
 # refused fixes agree (a receiver that is right after all).
+# The offset (OUTPUTS accel_offset) is its own estimate, not the filter's bias: that one learns slowly on purpose
+# (a garbage fix inside the gate moves it), and what the attitude filter needs is a road's slope within seconds.
+# Running means over OFFSET_TIME of the accelerometer and of the GPS speed: the rate of the speed's running mean is
+# the running mean of its rate, (u - mean) / OFFSET_TIME, so their difference is the running mean of the offset
+# (GPS noise 0.05 m/s: 0.02 m/s^2 of it). It does not feed the speed.
+OFFSET_TIME = 3.0  # s
+OFFSET_MAX_GAP = 0.5  # s between fixes taken beyond which the speed's running mean starts again
 DOUBT_FIXES = 10.0  # fixes: the memory of the refusal share
 DOUBT_SHARE = 0.5  # beyond this share of refusals the receiver is doubted (7 refusals in a row from none)
 
@@ -78,8 +93,11 @@ OUTPUTS = Layout(
     gps_age=1,  # s since a GPS speed was last taken (refused and doubted fixes are not)
     gps_doubted=1,  # 1 while most recent fixes are refused: the receiver's speeds (and courses) are not believed
     gps_lost=1,  # 1 once gps_age exceeds gps_hold: the speed is dead reckoning
+    # m/s^2: what the longitudinal accelerometer reads beyond the speed's rate, over the last OFFSET_TIME against
+    # GPS: its bias and g sin(pitch) of an IMU pitched off the level (a slope, the suspension's sag, a mount)
+    accel_offset=1,
 )
-OUT_U, OUT_KNOWN, OUT_GPS_AGE, OUT_GPS_DOUBTED, OUT_GPS_LOST = OUTPUTS.offsets
+OUT_U, OUT_KNOWN, OUT_GPS_AGE, OUT_GPS_DOUBTED, OUT_GPS_LOST, OUT_ACCEL_OFFSET = OUTPUTS.offsets
 
 
 def new_speed_state(latency_samples: int) -> np.ndarray:
@@ -126,13 +144,18 @@ def speed_step(
             return 0.0
         state[SPD_U] = gps_speed
         state[SPD_BIAS] = 0.0
+        state[SPD_MEAN_SPEED] = gps_speed
+        state[SPD_MEAN_ACCEL] = accel_x if math.isfinite(accel_x) else 0.0
+        state[SPD_OFFSET] = state[SPD_MEAN_ACCEL]
         for k in range(n_ring):
             state[SPD_RING0 + k] = gps_speed
         state[SPD_INIT] = 1.0
     a = accel_x if math.isfinite(accel_x) else 0.0
     u = state[SPD_U] + (a - state[SPD_BIAS]) * dt
+    state[SPD_MEAN_ACCEL] += dt / OFFSET_TIME * (a - state[SPD_MEAN_ACCEL])
     head = int(state[SPD_HEAD])
     state[SPD_SINCE] += dt
+    interval = state[SPD_SINCE]  # s since the last fix taken, before this one
     if gps_new and gps_ok and math.isfinite(gps_speed):
         lag = min(latency_samples, n_ring - 1)
         past = state[SPD_RING0 + (head - lag) % n_ring]
@@ -160,6 +183,12 @@ def speed_step(
         u += share * innovation
         if share == gain:  # an accelerometer bias shows up as a persistent innovation of one sign
             state[SPD_BIAS] -= bias_gain * innovation
+            if interval <= OFFSET_MAX_GAP:
+                rate = (gps_speed - state[SPD_MEAN_SPEED]) / OFFSET_TIME  # of the speed's running mean
+                state[SPD_MEAN_SPEED] += interval / OFFSET_TIME * (gps_speed - state[SPD_MEAN_SPEED])
+                state[SPD_OFFSET] = state[SPD_MEAN_ACCEL] - rate
+            else:  # after an outage the mean is not the last OFFSET_TIME's: start it again, keep the offset
+                state[SPD_MEAN_SPEED] = gps_speed
         # shift the stored predictions too, so the next fix is compared like with like
         for k in range(n_ring):
             state[SPD_RING0 + k] += share * innovation
@@ -192,6 +221,7 @@ def speed_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.nda
     out[OUT_GPS_AGE] = st[SPD_SINCE]
     out[OUT_GPS_DOUBTED] = 1.0 if st[SPD_REFUSED_SHARE] > DOUBT_SHARE else 0.0
     out[OUT_GPS_LOST] = 1.0 if st[SPD_INIT] != 0.0 and st[SPD_SINCE] > prm[P_GPS_HOLD] else 0.0
+    out[OUT_ACCEL_OFFSET] = st[SPD_OFFSET]
 
 
 STAGE = Stage(

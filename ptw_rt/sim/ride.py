@@ -119,6 +119,9 @@ PERTURB_KEYS = {
     "imu_bias": "factor on the IMU per-run bias (gyro 0.003 rad/s, accel 0.05 m/s^2 rms)",
     "steer_offset": "steering encoder calibration offset in counts (straight ahead reads 512 + offset)",
     "rider_noise": "factor on the rider's torque noise and line wander",
+    "road_slope": "deg of a constant road grade, uphill positive (the IMU readings; the plant keeps its speed)",
+    "imu_mount_roll": "deg the IMU is mounted rolled (right side down) off the chassis axes (an installation error)",
+    "imu_mount_pitch": "deg the IMU is mounted pitched (nose up) off the chassis axes",
     # sensor faults the sensors' own checks cannot see (counters, ranges and timing stay right), from fault_at on
     "fault_at": "s into the ride at which the faults below appear (0: from the start)",
     "yaw_gyro_scale": "factor on the yaw-rate gyro's reading (a scale error)",
@@ -145,6 +148,9 @@ class Perturbation:
     imu_bias: float = 1.0
     steer_offset: float = 0.0
     rider_noise: float = 1.0
+    road_slope: float = 0.0
+    imu_mount_roll: float = 0.0
+    imu_mount_pitch: float = 0.0
     fault_at: float = 0.0
     yaw_gyro_scale: float = 1.0
     roll_gyro_bias_step: float = 0.0
@@ -190,6 +196,8 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
             raise UserFacingError(f"--perturb {item!r}: {key} must be within 0.05 .. 1.5")
         if key in ("imu_noise", "imu_bias", "rider_noise") and not 0.0 <= value <= 100.0:
             raise UserFacingError(f"--perturb {item!r}: {key} is a factor, expected 0 .. 100")
+        if key in ("road_slope", "imu_mount_roll", "imu_mount_pitch") and not abs(value) <= 20.0:
+            raise UserFacingError(f"--perturb {item!r}: {key} must be within -20 .. 20 deg")
         if key == "added_mass" and not -150.0 <= value <= 300.0:
             raise UserFacingError(f"--perturb {item!r}: added_mass must be within -150 .. 300 kg")
         if key == "fault_at" and not 0.0 <= value <= 3600.0:

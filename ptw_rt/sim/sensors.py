@@ -153,8 +153,12 @@ def _sample(rec: np.ndarray, col: int, ts: np.ndarray) -> np.ndarray:
     return np.interp(ts, rec[:, loop.REC_T], rec[:, col])
 
 
-def imu_readings(rec: np.ndarray, ts: np.ndarray, g: float, height: float, forward: float) -> dict[str, np.ndarray]:
-    """Noise-free body-frame rates and specific force of the IMU at times ts (hand-derived kinematics)."""
+def imu_readings(
+    rec: np.ndarray, ts: np.ndarray, g: float, height: float, forward: float, slope: float = 0.0
+) -> dict[str, np.ndarray]:
+    """Noise-free body-frame rates and specific force of the IMU at times ts (hand-derived kinematics), on a road
+    of constant ``slope`` [rad, uphill positive]: the vehicle turns about the vertical, which its pitched roll axis
+    sees a part of (roll rate p = roll' - r sin(slope)), and gravity has a part along it."""
     X = loop.REC_X0
     phi = _sample(rec, X + PHI, ts)
     p = _sample(rec, X + PHI_DOT, ts)
@@ -170,15 +174,26 @@ def imu_readings(rec: np.ndarray, ts: np.ndarray, g: float, height: float, forwa
     ax = du - vy * r - dr * h * sp - r * r * xi - 2.0 * r * h * cp * p
     ay = dvy + u * r + dr * xi - r * r * h * sp + h * (cp * dp - sp * p * p)
     az = h * (sp * dp + cp * p * p)
-    fx, fy, fz = ax, ay, az - g
+    cs, ss = math.cos(slope), math.sin(slope)
+    fx, fy, fz = ax + g * ss, ay, az - g * cs
     return {
-        "RollRate": p,
-        "PitchRate": r * sp,
-        "YawRate": r * cp,
+        "RollRate": p - r * ss,
+        "PitchRate": r * sp * cs,
+        "YawRate": r * cp * cs,
         "AccelX": fx,
         "AccelY": fy * cp + fz * sp,
         "AccelZ": -fy * sp + fz * cp,
     }
+
+
+def mounted(vector: tuple[np.ndarray, np.ndarray, np.ndarray], roll: float, pitch: float) -> tuple[np.ndarray, ...]:
+    """A chassis-axes vector (x, y, z) as an IMU reads it when mounted rolled by ``roll`` (right side down) and then
+    pitched by ``pitch`` (nose up) off the chassis axes [rad]: an installation that is not square."""
+    x, y, z = vector
+    cr, sr, cq, sq = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    y, z = y * cr + z * sr, -y * sr + z * cr
+    x, z = x * cq - z * sq, x * sq + z * cq
+    return x, y, z
 
 
 def steer_counts(delta: np.ndarray, zero: int, offset: int, counts_per_rev: int) -> np.ndarray:
@@ -216,7 +231,12 @@ def make_sensor_streams(
         ("IMU_Accel", t_acc, ("AccelX", "AccelY", "AccelZ"), accel_bias, cfg.accel_noise),
     ):
         ts = np.maximum(tt - cfg.imu_delay, 0.0)
-        clean = imu_readings(rec, ts, p.g, cfg.imu_height, cfg.imu_forward)
+        clean = imu_readings(rec, ts, p.g, cfg.imu_height, cfg.imu_forward, math.radians(pert.road_slope))
+        if pert.imu_mount_roll != 0.0 or pert.imu_mount_pitch != 0.0:
+            turned = mounted(
+                tuple(clean[k] for k in keys), math.radians(pert.imu_mount_roll), math.radians(pert.imu_mount_pitch)
+            )
+            clean = dict(zip(keys, turned, strict=True))
         sig = {}
         for j, k in enumerate(keys):
             sig[k] = clean[k] + bias[j] + rng.standard_normal(len(tt)) * sigma * pert.imu_noise
