@@ -285,6 +285,10 @@ SENSORS_SCHEMA = Section(
         "steer_counts_per_rev": (Number("count", integer=True, ge=64, le=1024), 1024),
         "imu_height": (Number("m", ge=0, le=2), 0.5),
         "imu_forward": (Number("m", ge=-2, le=2), 0.0),
+        # the IMU's mount off the chassis axes, measured once at rest, upright on level ground (docs/estimator.md,
+        # "A road that is not level"): its vectors are turned back into the chassis axes
+        "imu_mount_roll": (Number("deg", ge=-10, le=10), 0.0),
+        "imu_mount_pitch": (Number("deg", ge=-10, le=10), 0.0),
         "gps_latency": (Number("s", ge=0, le=1), 0.1),
         "speed_filter_gain": (Number("", gt=0, le=1), 0.3),
         "speed_bias_gain": (Number("", ge=0, le=1), 0.02),
@@ -568,6 +572,8 @@ class SensorSettings:
     steer_counts_per_rev: int
     imu_height: float  # m above the ground
     imu_forward: float  # m ahead of the centre of mass
+    imu_mount_roll: float  # deg the IMU is mounted rolled (right side down) off the chassis axes
+    imu_mount_pitch: float  # deg ... pitched (nose up)
     gps_latency: float  # s
     speed_filter_gain: float
     speed_bias_gain: float

@@ -105,10 +105,29 @@ PARAMS = Layout(
     max_steer_step=1,  # counts per cycle: a larger jump of the encoder is not a steering motion
     steer_resync=1,  # cycles: after this many implausible jumps in a row the encoder's value is taken as the truth
     gps_hold=1,  # s without a usable fix before GPS_LOST
+    # the IMU's mount off the chassis axes (sensors.imu_mount_roll / _pitch): 1 if there is one, and the cosines and
+    # sines of its roll and pitch
+    mounted=1,
+    mount_cos_roll=1,
+    mount_sin_roll=1,
+    mount_cos_pitch=1,
+    mount_sin_pitch=1,
 )
-P_DT, P_MAX_RATE, P_MAX_ACCEL, P_STEER_CPR, P_MAX_GPS_SPEED, P_MAX_STEER_STEP, P_STEER_RESYNC, P_GPS_HOLD = (
-    PARAMS.offsets
-)
+(
+    P_DT,
+    P_MAX_RATE,
+    P_MAX_ACCEL,
+    P_STEER_CPR,
+    P_MAX_GPS_SPEED,
+    P_MAX_STEER_STEP,
+    P_STEER_RESYNC,
+    P_GPS_HOLD,
+    P_MOUNTED,
+    P_MOUNT_COS_ROLL,
+    P_MOUNT_SIN_ROLL,
+    P_MOUNT_COS_PITCH,
+    P_MOUNT_SIN_PITCH,
+) = PARAMS.offsets
 
 OUTPUTS = Layout(
     "OUT_",
@@ -150,6 +169,7 @@ OUTPUTS = Layout(
 def build_params(settings, design) -> np.ndarray:
     est, sens = settings.estimator, settings.sensors
     dt = float(design.sample_time)
+    roll, pitch = math.radians(sens.imu_mount_roll), math.radians(sens.imu_mount_pitch)
     return PARAMS.vector(
         dt=dt,
         max_rate=est.max_abs_rate,
@@ -160,7 +180,23 @@ def build_params(settings, design) -> np.ndarray:
         max_steer_step=3.0 * dt * sens.steer_counts_per_rev / (2.0 * math.pi) + 1.0,
         steer_resync=10,
         gps_hold=est.gps_hold_time,
+        mounted=1.0 if roll != 0.0 or pitch != 0.0 else 0.0,
+        mount_cos_roll=math.cos(roll),
+        mount_sin_roll=math.sin(roll),
+        mount_cos_pitch=math.cos(pitch),
+        mount_sin_pitch=math.sin(pitch),
     )
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _to_chassis(v: np.ndarray, i: int, prm: np.ndarray) -> None:
+    """v[i : i + 3], a vector in the IMU's axes, into the chassis axes: the mount's pitch undone, then its roll (the
+    simulator's `sensors.mounted` turns the other way)."""
+    cr, sr, cq, sq = prm[P_MOUNT_COS_ROLL], prm[P_MOUNT_SIN_ROLL], prm[P_MOUNT_COS_PITCH], prm[P_MOUNT_SIN_PITCH]
+    x, y, z = v[i], v[i + 1], v[i + 2]
+    x, z = x * cq + z * sq, -x * sq + z * cq
+    y, z = y * cr - z * sr, y * sr + z * cr
+    v[i], v[i + 1], v[i + 2] = x, y, z
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -300,7 +336,10 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
         st[ST_STEER_SEEN] = 1.0
         st[ST_STEER_AGE] = 0.0
     for k in range(N_RAW):
-        st[ST_LAST + k] = raw[k]
+        st[ST_LAST + k] = raw[k]  # in the IMU's axes: what the next frames are checked against
+    if prm[P_MOUNTED] != 0.0:  # what the later stages read: the chassis' rates and specific force
+        _to_chassis(raw, RAW_P, prm)
+        _to_chassis(raw, RAW_AX, prm)
     st[ST_RATES_AGE] = 0.0 if (held & MSG_IMU_RATES) == 0 else st[ST_RATES_AGE] + 1.0
     if stale != 0:
         reasons_now |= REASON_STALE
