@@ -100,7 +100,7 @@ STATE = Layout(
     held=1,  # consecutive cycles that integrated a held rate
     corrupt_run=1,  # cycles with corrupt input in the current burst (clean gaps shorter than BURST_GAP allowed)
     clean_run=1,  # consecutive cycles without corrupt input
-    burst_biases=N_BIASES,  # the biases (b_p, b_q, b_r, b_ay) as the current burst found them (only updates move them)
+    burst_biases=N_BIASES,  # the slow states (b_p .. b_ax) as the current burst found them (only updates move them)
     burst_roll_moved=1,  # rad, what the measurement updates have moved the roll by since the burst began
     yaw_accel=1,  # rad/s^2, the ground yaw rate's derivative, low-passed over YAW_ACCEL_TIME (the sideslip's drive)
     imu_fresh_run=1,  # consecutive cycles with new sound samples of the gyros and accelerometer (`_roll_gyro_step`)
@@ -804,7 +804,7 @@ def attitude_step(
     q1, r1 = q_mid - bq, r_mid - br
     rg1 = q1 * s + r1 * c
     pitch1 = q1 * c - r1 * s
-    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])
+    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])  # the pitch is not predicted: also the outputs'
     x[X_PHI] += dt * tan_pitch * rg1
     d_psi = dt * rg1 / cos_pitch
     x[X_PSI] += d_psi
@@ -887,7 +887,6 @@ def attitude_step(
     prev[PREV_RATES_OK] = 1.0 if rates_ok else 0.0
 
     out[OUT_ROLL] = phi
-    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])
     out[OUT_ROLL_RATE] = prev[PREV_P] - x[X_BP] + tan_pitch * prev[PREV_RG]
     out[OUT_YAW_RATE] = prev[PREV_RG] / cos_pitch
     out[OUT_PITCH] = x[X_PITCH]
