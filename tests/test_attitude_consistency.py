@@ -233,7 +233,9 @@ def test_roll_gyro_bias_ramp_is_flagged_and_relearned(bias):
     perturb = [f"roll_gyro_bias_step={bias}", f"fault_at={FAULT_AT}", "roll_gyro_bias_ramp=1.0"]
     t, scored, roll_valid, flagged, err_deg = _run("slalom_30", perturb)
     first = t[flagged][0] if flagged.any() else math.inf
-    assert FAULT_AT < first <= FAULT_AT + 1.5  # seen within 1.5 s (1.1 s on this ride)
+    # seen within 2 s: 1.1 s before the grade's pitch rate was a state, 1.65 / 1.34 s since (the rate takes part of
+    # the rotation axis's innovation until the lateral one closes it: docs/estimator.md, "A road whose grade changes")
+    assert FAULT_AT < first <= FAULT_AT + 2.0
     during = flagged & (t < first + 0.5)
     assert not (roll_valid & during).any()  # V_ROLL dropped while it fires
     # the biases re-learned: the roll is right again, and never VALID beyond the 3 deg tolerance

@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from ptw_rt.core.conditioning import ground_yaw_rate, horizontal_lateral_accel, steer_angle
 from ptw_rt.sim import loop
 from ptw_rt.sim.plant import PHI, PHI_DOT, VY, R, U
-from ptw_rt.sim.sensors import frame_times, imu_readings, steer_counts
+from ptw_rt.sim.ride import parse_perturbations
+from ptw_rt.sim.sensors import frame_times, imu_readings, road_grade, steer_counts
 
 G = 9.81
 
@@ -37,8 +38,8 @@ def record(n=5, **values):
     return rec
 
 
-def read(rec, height=0.5, forward=0.0, slope=0.0):
-    out = imu_readings(rec, np.array([2e-3]), G, height, forward, slope)
+def read(rec, height=0.5, forward=0.0, slope=0.0, slope_rate=0.0):
+    out = imu_readings(rec, np.array([2e-3]), G, height, forward, slope, slope_rate)
     return {k: float(v[0]) for k, v in out.items()}
 
 
@@ -67,6 +68,44 @@ def test_steady_coordinated_turn(roll_deg, height):
     assert ground_yaw_rate(m["PitchRate"], m["YawRate"], phi) == pytest.approx(r)
     a_y = horizontal_lateral_accel(m["AccelY"], m["AccelZ"], phi)
     assert a_y == pytest.approx(u * r - r**2 * height * math.sin(phi))
+
+
+def test_a_grade_that_changes_pitches_the_chassis_and_curves_the_path():
+    """Over a crest the chassis pitches nose-down (pitch' < 0): the pitch gyro reads pitch' cos(roll), the yaw gyro
+    -pitch' sin(roll), and the path's vertical curvature u pitch' lightens the vehicle along the road's normal."""
+    u, rate, phi = 15.0, -0.02, math.radians(20.0)
+    m = read(record(u=u), height=0.0, slope=0.03, slope_rate=rate)
+    assert m["PitchRate"] == pytest.approx(rate)
+    assert m["YawRate"] == 0.0
+    assert m["AccelZ"] == pytest.approx(-G * math.cos(0.03) - u * rate)  # less than g: a crest
+    r = G * math.tan(phi) / u
+    leaning = read(record(phi=phi, r=r, u=u), height=0.0, slope=0.0, slope_rate=rate)
+    level = read(record(phi=phi, r=r, u=u), height=0.0)
+    assert leaning["PitchRate"] - level["PitchRate"] == pytest.approx(rate * math.cos(phi))
+    assert leaning["YawRate"] - level["YawRate"] == pytest.approx(-rate * math.sin(phi))
+    # the gyros' pitch rate q cos(roll) - r sin(roll) is the grade's rate, the turn's part cancels
+    q, r_b = leaning["PitchRate"], leaning["YawRate"]
+    assert q * math.cos(phi) - r_b * math.sin(phi) == pytest.approx(rate)
+
+
+def test_the_grade_swings_over_the_distance_ridden_not_over_time():
+    """`road_slope_swing` over `road_slope_length` metres: riding, the chassis pitches at u d(grade)/ds; standing
+    still it does not, whatever the time."""
+    pert = parse_perturbations(["road_slope=1", "road_slope_swing=4", "road_slope_length=400"])
+    n = 2001
+    rec = np.zeros((n, loop.NREC))
+    rec[:, loop.REC_T] = np.arange(n) * 1e-2  # 20 s
+    rec[:, loop.REC_X0 + U] = np.where(rec[:, loop.REC_T] < 10.0, 20.0, 0.0)  # 200 m, then standing
+    ts = np.array([0.0, 5.0, 15.0, 19.0])
+    grade, rate = road_grade(pert, rec, ts)
+    k = 2.0 * math.pi / 400.0
+    assert grade[0] == pytest.approx(math.radians(1.0))
+    assert grade[1] == pytest.approx(math.radians(1.0) + math.radians(4.0) * math.sin(k * 100.0), abs=1e-3)
+    assert rate[1] == pytest.approx(math.radians(4.0) * k * math.cos(k * 100.0) * 20.0, rel=1e-3)
+    assert grade[2] == pytest.approx(grade[3])  # standing still: the grade under the wheels stays
+    assert rate[2] == rate[3] == 0.0
+    flat = road_grade(parse_perturbations(["road_slope=-2"]), rec, ts)
+    assert np.all(flat[0] == math.radians(-2.0)) and np.all(flat[1] == 0.0)
 
 
 def test_roll_acceleration_lever_arm():

@@ -116,7 +116,8 @@ def test_a_gyro_at_its_full_scale_grows_the_roll_uncertainty_like_a_held_rate(se
     for _ in range(4):
         att.attitude_stage(b.state, b.params, b.outputs, _inputs(att.GYRO_FULL_SCALE, 0.0, 0.0, 0.0, -G), speed)
         assert b.outputs[att.OUT_SATURATED] == 1.0
-    assert b.outputs[att.OUT_ROLL_SD] > sd0 + math.radians(0.5)  # a sound rate's 4 cycles: a few hundredths
+    grown = math.sqrt(b.outputs[att.OUT_ROLL_SD] ** 2 - sd0**2)
+    assert grown > math.radians(0.75)  # a sound rate's 4 cycles: a few hundredths of a degree
     assert 3.0 * b.outputs[att.OUT_ROLL_SD] > math.radians(3.0)  # no longer VALID
     att.attitude_stage(b.state, b.params, b.outputs, _inputs(2.9, 0.0, 0.0, 0.0, -G), speed)
     assert b.outputs[att.OUT_SATURATED] == 0.0

@@ -63,11 +63,13 @@ X_BR = 4  # rad/s, yaw-gyro bias
 X_BAY = 5  # m/s^2, lateral accelerometer bias
 X_PITCH = 6  # rad, the IMU's pitch off the level (a road's slope, the suspension's sag, a mount not square)
 X_BAX = 7  # m/s^2, longitudinal accelerometer bias (what of the speed stage's offset is not g sin(pitch))
-X_VY = 8  # m/s, lateral velocity of the reference point
-X_AV = 9  # m/s^2, its derivative
-N_X = 10
-N_BIASES = X_BAX - X_BP + 1  # the slow states, X_BP .. X_BAX (contiguous): kept on a restart
-N_DYNAMIC_STATES = (X_PHI, X_PSI, X_VY, X_AV)  # reset on a restart; the biases are kept
+X_BAZ = 8  # m/s^2, vertical accelerometer bias
+X_PITCH_RATE = 9  # rad/s, the rate the road's grade turns the chassis at (a crest, a dip): the pitch's derivative
+X_VY = 10  # m/s, lateral velocity of the reference point
+X_AV = 11  # m/s^2, its derivative
+N_X = 12
+N_BIASES = X_BAZ - X_BP + 1  # the slow states, X_BP .. X_BAZ (contiguous): kept on a restart
+N_DYNAMIC_STATES = (X_PHI, X_PSI, X_PITCH_RATE, X_VY, X_AV)  # reset on a restart; the biases are kept
 
 # ---- state buffer layout ----
 # inputs of the previous cycle (processed one cycle late), at ST_PREV + PREV_*
@@ -76,7 +78,8 @@ PREV_RATES_OK2 = 11  # the rates of the cycle before the previous one were measu
 PREV_P3 = 12  # the roll rate three cycles back, and the lateral specific force two and three cycles back: the
 PREV_FY2 = 13  # roll-gyro step check's samples (`_roll_gyro_step`)
 PREV_FY3 = 14
-N_PREV = 15
+PREV_FZ = 15  # the vertical specific force
+N_PREV = 16
 MAX_LATENCY_CYCLES = 32
 STATE = Layout(
     "ST_",
@@ -108,6 +111,10 @@ STATE = Layout(
     step_last=1,  # rad/s, that statistic in the previous cycle (0 without one)
     step_candidate=1,  # rad/s, a step the last cycle's statistic found, taken if this cycle's confirms it (else 0)
     step_before=1,  # rad/s, the statistic before that candidate
+    pitch_lag=1,  # rad, how far the pitch has turned beyond its running mean over the speed stage's offset window
+    pitch_rate_seen=1,  # rad/s, the gyros' pitch rate (q cos(roll) - r sin(roll), bias-corrected), low-passed
+    pitch_rate_felt=1,  # rad/s, the pitch rate the vertical accelerometer implies (u pitch'), low-passed
+    turn_accel_mean=1,  # m/s^2, what a turn adds along x at the IMU (-v_y r - x_imu r^2), over the offset's window
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
 (
@@ -138,6 +145,10 @@ STATE = Layout(
     ST_STEP_LAST,
     ST_STEP_CANDIDATE,
     ST_STEP_BEFORE,
+    ST_PITCH_LAG,
+    ST_PITCH_RATE_SEEN,
+    ST_PITCH_RATE_FELT,
+    ST_TURN_ACCEL_MEAN,
     ST_TMP,
 ) = STATE.offsets
 STATE_SIZE = STATE.size
@@ -192,13 +203,30 @@ INITIAL_AV_SD = 1.0  # m/s^2: its rate
 # is mounted square to a degree or two. In a turn the vertical the vehicle turns about then has a part along the
 # gyro's roll axis, roll' = p + tan(pitch) r_ground: on a 3 deg slope 0.05 r, the roll off by a degree in town.
 INITIAL_PITCH_SD = 0.1  # rad, a priori
-PITCH_DRIFT = 0.005  # rad/sqrt(s): a road's slope changes (3 deg over 10 s is 2 sd of it)
+PITCH_DRIFT = 0.005  # rad/sqrt(s): what of the pitch's change its rate does not carry
+# A road's grade changes: over a crest or through a dip the chassis pitches, at u over the vertical curve's radius
+# (a 4 deg swing of the grade every 300 m: 0.0015 / m, 0.015 rad/s at 36 km/h). The gyros measure that rate,
+# q cos(roll) - r sin(roll), and a turn on a level road makes none (its axis is vertical), so the pitch rate is a state,
+# a first-order Markov process:
+PITCH_RATE_SD = 0.015  # rad/s, its stationary spread on a hilly road
+PITCH_RATE_TIME = 5.0  # s, its correlation time
+# ... but a level road's turns are where the gyros' split of the turn tells the roll (their pitch rate is zero), and a
+# free pitch rate takes part of that: the rate's drive (and its prior) opens only as far as both the gyros' pitch rate
+# and the one the vertical accelerometer implies, each low-passed over PITCH_RATE_SEEN_TIME, show one beyond
+# PITCH_RATE_LEVEL (drive x seen^2 / (seen^2 + level^2), seen the smaller of the two; docs/estimator.md, "A road
+# whose grade changes")
+PITCH_RATE_SEEN_TIME = 1.0  # s
+PITCH_RATE_LEVEL = 0.003  # rad/s
+GRADE_DOUBT_CLOSES = 2.0  # the drive closes as the lateral innovations' running mean nears half the monitor's limit
+GRADE_MIN_SPEED = 3.0  # m/s: below it the vertical accelerometer's u pitch' is too small to tell a pitch rate ...
+GRADE_MAX_ROLL_COS = 0.5  # ... and leaning beyond 60 deg (a fall) its part along the body's z axis
+VERTICAL_ACCEL_NOISE = 0.2  # m/s^2 per cycle (the simulator's; a real engine's vibration is not measured here)
 # The speed stage's longitudinal offset, g sin(pitch) + b_ax over its last 3 s against GPS, is a measurement of
 # their sum; a turn tells the pitch from the accelerometer's bias (the roll drifts by tan(pitch) r_ground). The
-# offset is a running mean whose error is correlated over seconds and holds the turns' v_y r too, so each cycle's is
-# taken with this noise (its information over 3 s is that of one 0.3 m/s^2 reading: it seeds the pitch on a
-# straight, the turns set it; trusted 10 x more, the level rides' roll was worse: docs/estimator.md)
-ACCEL_OFFSET_NOISE = 5.0  # m/s^2 per cycle
+# offset is a running mean (its pitch lags by `pitch_lag`, a turn's -v_y r - x_imu r^2 in it by `turn_accel_mean`)
+# whose error is correlated over seconds, so each cycle's is taken with this noise (its information over 3 s is that
+# of one 0.06 m/s^2 reading; 5 before the lag and the turn's part were modelled, 0.5 - 5 no better since)
+ACCEL_OFFSET_NOISE = 1.0  # m/s^2 per cycle
 # A step of the roll-rate gyro's bias (a shock, a sensor that restarts on a stale calibration) is a jump of its level
 # between two samples that no roll acceleration made; riding straight nothing else tells it from a sideslip within
 # the 1 s the roll's tolerance leaves (docs/estimator.md, "A step within one sample"). `_roll_gyro_step` finds it
@@ -386,6 +414,9 @@ def attitude_params(
     prm[A_INIT_GYRO_BIAS_SD] = tuning.initial_gyro_bias_sd
     prm[A_INIT_ACCEL_BIAS_SD] = tuning.initial_accel_bias_sd
     prm[A_REOPEN_AFTER] = tuning.reopen_after_cycles
+    # the stage's consistency monitor's, which the filter's grade rate reads too
+    prm[A_CONSISTENCY_TIME] = tuning.consistency_time
+    prm[A_CONSISTENCY_LIMIT] = tuning.consistency_limit
     return prm
 
 
@@ -516,13 +547,13 @@ def _roll_gyro_step(
 
 @njit(cache=True)
 def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
-    """(Re)start roll, heading and sideslip; keep the biases and their covariance."""
+    """(Re)start roll, heading, sideslip and the grade's pitch rate; keep the biases and their covariance."""
     x = st[ST_X : ST_X + N_X]
     P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
     keep_biases = st[ST_INIT] != 0.0
     for i in range(N_X):
         for j in range(N_X):
-            bias_block = X_BP <= i <= X_BAX and X_BP <= j <= X_BAX
+            bias_block = X_BP <= i <= X_BAZ and X_BP <= j <= X_BAZ
             if not (keep_biases and bias_block):
                 P[i, j] = 0.0
     x[X_PHI] = roll
@@ -530,6 +561,12 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     P[X_PHI, X_PHI] = prm[A_INIT_ROLL_SD] ** 2
     P[X_PSI, X_PSI] = 1.0
     _restart_sideslip(x, P)
+    x[X_PITCH_RATE] = 0.0
+    P[X_PITCH_RATE, X_PITCH_RATE] = PITCH_RATE_LEVEL**2  # the grade's rate opens once the sensors see one
+    st[ST_PITCH_LAG] = 0.0
+    st[ST_PITCH_RATE_SEEN] = 0.0
+    st[ST_PITCH_RATE_FELT] = 0.0
+    st[ST_TURN_ACCEL_MEAN] = 0.0
     if not keep_biases:
         for b in (X_BP, X_BQ, X_BR):
             x[b] = 0.0
@@ -538,6 +575,8 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
         P[X_BAY, X_BAY] = prm[A_INIT_ACCEL_BIAS_SD] ** 2
         x[X_BAX] = 0.0
         P[X_BAX, X_BAX] = prm[A_INIT_ACCEL_BIAS_SD] ** 2
+        x[X_BAZ] = 0.0
+        P[X_BAZ, X_BAZ] = prm[A_INIT_ACCEL_BIAS_SD] ** 2
         x[X_PITCH] = 0.0
         P[X_PITCH, X_PITCH] = INITIAL_PITCH_SD**2
     st[ST_PSI_INIT] = 0.0
@@ -638,6 +677,7 @@ def attitude_step(
         prev[PREV_FY] = f_y
         prev[PREV_FY2] = f_y
         prev[PREV_FY3] = f_y
+        prev[PREV_FZ] = f_z
         prev[PREV_U] = u
         prev[PREV_U_VAR] = u_sd * u_sd
         prev[PREV_OK] = 0.0
@@ -687,13 +727,32 @@ def attitude_step(
     # held roll rate alone, at most 0.9 / 1.4 deg), so a held cycle predicts only
     if prev[PREV_OK] != 0.0 and prev[PREV_RATES_OK] != 0.0:
         a_y = x[X_AV] + u1 * rg1 + prm[A_IMU_FORWARD] * rgd1 - h * rg1 * rg1 * s + h * (c * phidd1 - s * phid1 * phid1)
-        a_z = h * (s * phidd1 + c * phid1 * phid1)
+        # a grade that changes curves the path in the vertical plane: u pitch' along the road's normal (a crest
+        # lightens the vehicle like less gravity)
+        a_z = h * (s * phidd1 + c * phid1 * phid1) - u1 * x[X_PITCH_RATE]
         g_level = g * math.cos(pitch)  # gravity's part in the plane the roll turns in
+        # the vertical accelerometer (body z): its prediction from this state, carried linearly to the state the
+        # lateral update leaves (the two are one measurement of the specific force's direction and size)
+        h_z = st[ST_TMP + 3 * N_X : ST_TMP + 4 * N_X]
+        x_before = st[ST_TMP + 4 * N_X : ST_TMP + 5 * N_X]
+        predicted_z = -a_y * s + (a_z - g_level) * c + x[X_BAZ]
+        for k in range(N_X):
+            h_z[k] = 0.0
+            x_before[k] = x[k]
+        h_z[X_PHI] = -a_y * c - (a_z - g_level) * s
+        h_z[X_PITCH] = g * math.sin(pitch) * c
+        h_z[X_PITCH_RATE] = -u1 * c
+        turn_per_rg = u1 - 2.0 * h * rg1 * s  # d a_y / d r_ground
+        h_z[X_BQ] = turn_per_rg * s * s
+        h_z[X_BR] = turn_per_rg * s * c
+        h_z[X_AV] = -s
+        h_z[X_BAZ] = 1.0
         predicted = a_y * c + (a_z - g_level) * s + x[X_BAY]
         _clear_h(H)
         H[X_PHI] = -a_y * s + (a_z - g_level) * c
         H[X_PITCH] = g * math.sin(pitch) * s
-        dud_rg = (u1 - 2.0 * h * rg1 * s) * c
+        H[X_PITCH_RATE] = -u1 * s
+        dud_rg = turn_per_rg * c
         H[X_BQ] = -dud_rg * s
         H[X_BR] = -dud_rg * c
         H[X_BAY] = 1.0
@@ -715,7 +774,20 @@ def attitude_step(
                 # the data have disagreed for a while: the roll is not what we believe, say so
                 P[X_PHI, X_PHI] += prm[A_INIT_ROLL_SD] ** 2
                 st[ST_REJECTED] = 0.0
-        # the rotation axis is vertical: pitch rate (q cos - r sin) ~ 0
+        # the vertical specific force: g cos(pitch) and what the grade's change adds (u pitch'), seen through the roll
+        for k in range(N_X):
+            predicted_z += h_z[k] * (x[k] - x_before[k])
+            H[k] = h_z[k]
+        variance = VERTICAL_ACCEL_NOISE**2 + prev[PREV_U_VAR] * rg1 * rg1 * s * s
+        if prev[PREV_RATES_OK2] == 0.0 or not rates_ok:
+            variance += (h * UNMEASURED_RATE_SD / dt) ** 2 * 0.01
+        nu_z = prev[PREV_FZ] - predicted_z
+        if u1 > GRADE_MIN_SPEED and c > GRADE_MAX_ROLL_COS:
+            felt = x[X_PITCH_RATE] - nu_z / (u1 * c)
+            if math.isfinite(felt):
+                st[ST_PITCH_RATE_FELT] += dt / PITCH_RATE_SEEN_TIME * (felt - st[ST_PITCH_RATE_FELT])
+        _update(st, H, nu_z, variance, gate)
+        # the rotation axis is vertical but for the road's grade changing: pitch rate (q cos - r sin) = the state's
         phi = x[X_PHI]
         s, c = math.sin(phi), math.cos(phi)
         bq, br = x[X_BQ], x[X_BR]
@@ -724,16 +796,19 @@ def attitude_step(
         H[X_PHI] = -(q1 * s + r1 * c)
         H[X_BQ] = -c
         H[X_BR] = s
-        _update(st, H, -(q1 * c - r1 * s), prm[A_R_PITCH_RATE] ** 2, gate)
+        H[X_PITCH_RATE] = -1.0
+        _update(st, H, x[X_PITCH_RATE] - (q1 * c - r1 * s), prm[A_R_PITCH_RATE] ** 2, gate)
         nu_pitch = st[ST_NU]
 
     if math.isfinite(accel_x_offset):
-        # the longitudinal accelerometer's offset against GPS: g sin(pitch) + b_ax
-        pitch = x[X_PITCH]
+        # the longitudinal accelerometer's offset against GPS: g sin(pitch) + b_ax and a turn's part, a running mean
+        # over the speed stage's window: the pitch of that window is this one less what its rate turned it by since
+        pitch = x[X_PITCH] - st[ST_PITCH_LAG]
         _clear_h(H)
         H[X_PITCH] = g * math.cos(pitch)
         H[X_BAX] = 1.0
-        _update(st, H, accel_x_offset - g * math.sin(pitch) - x[X_BAX], ACCEL_OFFSET_NOISE**2, gate)
+        nu = accel_x_offset - g * math.sin(pitch) - x[X_BAX] - st[ST_TURN_ACCEL_MEAN]
+        _update(st, H, nu, ACCEL_OFFSET_NOISE**2, gate)
 
     if standstill and rates_ok:
         # the true rates and the sideslip are zero: the gyros read their biases
@@ -804,7 +879,7 @@ def attitude_step(
     q1, r1 = q_mid - bq, r_mid - br
     rg1 = q1 * s + r1 * c
     pitch1 = q1 * c - r1 * s
-    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])  # the pitch is not predicted: also the outputs'
+    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])
     x[X_PHI] += dt * tan_pitch * rg1
     d_psi = dt * rg1 / cos_pitch
     x[X_PSI] += d_psi
@@ -814,9 +889,16 @@ def attitude_step(
     tv = prm[A_SIDESLIP_TIME]
     x[X_VY] += dt * (x[X_AV] - x[X_VY] / tv)
     x[X_AV] *= 1.0 - dt / ta
+    x[X_PITCH] += dt * x[X_PITCH_RATE]
+    st[ST_PITCH_LAG] += dt * (x[X_PITCH_RATE] - st[ST_PITCH_LAG] / spd.OFFSET_TIME)
+    turn_accel = -x[X_VY] * rg1 - prm[A_IMU_FORWARD] * rg1 * rg1
+    st[ST_TURN_ACCEL_MEAN] += dt / spd.OFFSET_TIME * (turn_accel - st[ST_TURN_ACCEL_MEAN])
+    pitch_rate_decay = dt / PITCH_RATE_TIME
+    x[X_PITCH_RATE] *= 1.0 - pitch_rate_decay
     # P <- F P F' + Q with F = I + dt A, A sparse: [phi,bp]=-1, [psi,phi]=pitch, [psi,bq]=-s, [psi,br]=-c (the
     # psi row over cos(pitch) and tan(pitch) of it added to the phi row), [phi,pitch] = r_g / cos^2(pitch),
-    # [psi,pitch] = r_g tan(pitch) / cos(pitch), [vy,vy]=-1/tv, [vy,av]=1, [av,av]=-1/ta
+    # [psi,pitch] = r_g tan(pitch) / cos(pitch), [vy,vy]=-1/tv, [vy,av]=1, [av,av]=-1/ta, [pitch,pitch rate]=1,
+    # [pitch rate,pitch rate]=-1/PITCH_RATE_TIME
     FP = st[ST_TMP + 3 * N_X : ST_TMP + 3 * N_X + N_X * N_X].reshape((N_X, N_X))
     for j in range(N_X):
         for i in range(N_X):
@@ -826,6 +908,8 @@ def attitude_step(
         FP[X_PSI, j] += turn / cos_pitch + psi_per_pitch * P[X_PITCH, j]
         FP[X_VY, j] += dt * (P[X_AV, j] - P[X_VY, j] / tv)
         FP[X_AV, j] -= dt * P[X_AV, j] / ta
+        FP[X_PITCH, j] += dt * P[X_PITCH_RATE, j]
+        FP[X_PITCH_RATE, j] -= pitch_rate_decay * P[X_PITCH_RATE, j]
     for i in range(N_X):
         for j in range(N_X):
             P[i, j] = FP[i, j]
@@ -834,6 +918,8 @@ def attitude_step(
         P[i, X_PSI] += turn / cos_pitch + psi_per_pitch * FP[i, X_PITCH]
         P[i, X_VY] += dt * (FP[i, X_AV] - FP[i, X_VY] / tv)
         P[i, X_AV] -= dt * FP[i, X_AV] / ta
+        P[i, X_PITCH] += dt * FP[i, X_PITCH_RATE]
+        P[i, X_PITCH_RATE] -= pitch_rate_decay * FP[i, X_PITCH_RATE]
     P[X_PHI, X_PHI] += prm[A_Q_ROLL] ** 2 * dt
     P[X_PSI, X_PSI] += prm[A_Q_HEADING] ** 2 * dt
     if not rates_ok or saturated:
@@ -851,7 +937,16 @@ def attitude_step(
     P[X_BR, X_BR] += qb
     P[X_BAY, X_BAY] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
     P[X_BAX, X_BAX] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
+    P[X_BAZ, X_BAZ] += prm[A_Q_ACCEL_BIAS] ** 2 * dt
     P[X_PITCH, X_PITCH] += PITCH_DRIFT**2 * dt
+    st[ST_PITCH_RATE_SEEN] += dt / PITCH_RATE_SEEN_TIME * (pitch1 - st[ST_PITCH_RATE_SEEN])
+    seen2 = min(st[ST_PITCH_RATE_SEEN] ** 2, st[ST_PITCH_RATE_FELT] ** 2)  # the gyros and the accelerometer agree
+    # ... and the lateral specific force agrees with the roll: a roll gone wrong (a gyro's fault) makes a pitch rate
+    # of the turn's rate times its error, which the grade's rate must not take (closed at half the monitor's limit)
+    alpha = min(dt / prm[A_CONSISTENCY_TIME], 1.0)
+    lateral_doubt = abs(st[ST_MEAN_LATERAL]) / (math.sqrt(alpha / (2.0 - alpha)) * prm[A_CONSISTENCY_LIMIT])
+    opening = seen2 / (seen2 + PITCH_RATE_LEVEL**2) * max(1.0 - GRADE_DOUBT_CLOSES * lateral_doubt, 0.0)
+    P[X_PITCH_RATE, X_PITCH_RATE] += 2.0 * PITCH_RATE_SD**2 * pitch_rate_decay * opening
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
     lat_ratio = _corner_excess(x[X_PHI], prm) / prm[A_SIDESLIP_ACCEL_REF]
     # ... and in a quick change of yaw at speed: the slip angles follow the forces, v_y' ~ (l_r - u^2 m_r / C_r) r'
@@ -880,12 +975,14 @@ def attitude_step(
     prev[PREV_FY3] = prev[PREV_FY2]
     prev[PREV_FY2] = prev[PREV_FY]
     prev[PREV_FY] = f_y
+    prev[PREV_FZ] = f_z
     prev[PREV_U] = u
     prev[PREV_U_VAR] = u_sd * u_sd
     prev[PREV_OK] = 1.0 if accel_ok else 0.0
     prev[PREV_RATES_OK2] = prev[PREV_RATES_OK]
     prev[PREV_RATES_OK] = 1.0 if rates_ok else 0.0
 
+    tan_pitch, cos_pitch = math.tan(x[X_PITCH]), math.cos(x[X_PITCH])  # predicted above
     out[OUT_ROLL] = phi
     out[OUT_ROLL_RATE] = prev[PREV_P] - x[X_BP] + tan_pitch * prev[PREV_RG]
     out[OUT_YAW_RATE] = prev[PREV_RG] / cos_pitch
@@ -925,8 +1022,6 @@ def build_params(settings, design) -> np.ndarray:
     prm[A_CAL_SPEED] = sens.gyro_calibration_speed
     prm[A_CAL_MAX_RATE] = sens.gyro_calibration_max_rate
     tuning = settings.estimator.attitude
-    prm[A_CONSISTENCY_TIME] = tuning.consistency_time
-    prm[A_CONSISTENCY_LIMIT] = tuning.consistency_limit
     prm[A_CONSISTENCY_HOLD] = tuning.consistency_hold
     prm[A_COURSE_INTERVAL] = GPS_FIX_INTERVAL
     return prm

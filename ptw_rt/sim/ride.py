@@ -119,7 +119,9 @@ PERTURB_KEYS = {
     "imu_bias": "factor on the IMU per-run bias (gyro 0.003 rad/s, accel 0.05 m/s^2 rms)",
     "steer_offset": "steering encoder calibration offset in counts (straight ahead reads 512 + offset)",
     "rider_noise": "factor on the rider's torque noise and line wander",
-    "road_slope": "deg of a constant road grade, uphill positive (the IMU readings; the plant keeps its speed)",
+    "road_slope": "deg of the road's grade, uphill positive (the IMU and GPS readings; the plant keeps its speed)",
+    "road_slope_swing": "deg the grade swings about road_slope, a sine over road_slope_length (hills: crests, dips)",
+    "road_slope_length": "m ridden over one swing of the grade (default 500)",
     "imu_mount_roll": "deg the IMU is mounted rolled (right side down) off the chassis axes (an installation error)",
     "imu_mount_pitch": "deg the IMU is mounted pitched (nose up) off the chassis axes",
     # sensor faults the sensors' own checks cannot see (counters, ranges and timing stay right), from fault_at on
@@ -149,6 +151,8 @@ class Perturbation:
     steer_offset: float = 0.0
     rider_noise: float = 1.0
     road_slope: float = 0.0
+    road_slope_swing: float = 0.0
+    road_slope_length: float = 500.0
     imu_mount_roll: float = 0.0
     imu_mount_pitch: float = 0.0
     fault_at: float = 0.0
@@ -198,6 +202,10 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
             raise UserFacingError(f"--perturb {item!r}: {key} is a factor, expected 0 .. 100")
         if key in ("road_slope", "imu_mount_roll", "imu_mount_pitch") and not abs(value) <= 20.0:
             raise UserFacingError(f"--perturb {item!r}: {key} must be within -20 .. 20 deg")
+        if key == "road_slope_swing" and not 0.0 <= value <= 20.0:
+            raise UserFacingError(f"--perturb {item!r}: road_slope_swing must be within 0 .. 20 deg")
+        if key == "road_slope_length" and not 20.0 <= value <= 100_000.0:
+            raise UserFacingError(f"--perturb {item!r}: road_slope_length must be within 20 .. 100000 m")
         if key == "added_mass" and not -150.0 <= value <= 300.0:
             raise UserFacingError(f"--perturb {item!r}: added_mass must be within -150 .. 300 kg")
         if key == "fault_at" and not 0.0 <= value <= 3600.0:

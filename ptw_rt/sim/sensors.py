@@ -153,12 +153,34 @@ def _sample(rec: np.ndarray, col: int, ts: np.ndarray) -> np.ndarray:
     return np.interp(ts, rec[:, loop.REC_T], rec[:, col])
 
 
+def road_grade(pert, rec: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The road's grade [rad, uphill positive] under the vehicle and the rate it pitches the chassis at [rad/s], at
+    times ts: ``road_slope`` on average, swinging by ``road_slope_swing`` over every ``road_slope_length`` metres
+    ridden (a hilly road: crests and dips; standing still, the chassis does not pitch)."""
+    mean, swing = math.radians(pert.road_slope), math.radians(pert.road_slope_swing)
+    if swing == 0.0:
+        return np.full(len(ts), mean), np.zeros(len(ts))
+    t, u = rec[:, loop.REC_T], rec[:, loop.REC_X0 + U]
+    ridden = np.concatenate(([0.0], np.cumsum(0.5 * (u[1:] + u[:-1]) * np.diff(t))))
+    k = 2.0 * math.pi / pert.road_slope_length
+    phase = k * np.interp(ts, t, ridden)
+    return mean + swing * np.sin(phase), swing * k * np.cos(phase) * np.interp(ts, t, u)
+
+
 def imu_readings(
-    rec: np.ndarray, ts: np.ndarray, g: float, height: float, forward: float, slope: float = 0.0
+    rec: np.ndarray,
+    ts: np.ndarray,
+    g: float,
+    height: float,
+    forward: float,
+    slope: float | np.ndarray = 0.0,
+    slope_rate: float | np.ndarray = 0.0,
 ) -> dict[str, np.ndarray]:
     """Noise-free body-frame rates and specific force of the IMU at times ts (hand-derived kinematics), on a road
-    of constant ``slope`` [rad, uphill positive]: the vehicle turns about the vertical, which its pitched roll axis
-    sees a part of (roll rate p = roll' - r sin(slope)), and gravity has a part along it."""
+    of grade ``slope`` [rad, uphill positive] changing at ``slope_rate`` [rad/s]: the vehicle turns about the
+    vertical, which its pitched roll axis sees a part of (roll rate p = roll' - r sin(slope)), gravity has a part
+    along it, and a grade that changes pitches the chassis (its rate on the pitch and yaw gyros, and the path's
+    curvature u slope' normal to the road: a crest lightens the vehicle)."""
     X = loop.REC_X0
     phi = _sample(rec, X + PHI, ts)
     p = _sample(rec, X + PHI_DOT, ts)
@@ -173,13 +195,13 @@ def imu_readings(
     h, xi = height, forward
     ax = du - vy * r - dr * h * sp - r * r * xi - 2.0 * r * h * cp * p
     ay = dvy + u * r + dr * xi - r * r * h * sp + h * (cp * dp - sp * p * p)
-    az = h * (sp * dp + cp * p * p)
-    cs, ss = math.cos(slope), math.sin(slope)
+    az = h * (sp * dp + cp * p * p) - u * slope_rate
+    cs, ss = np.cos(slope), np.sin(slope)
     fx, fy, fz = ax + g * ss, ay, az - g * cs
     return {
         "RollRate": p - r * ss,
-        "PitchRate": r * sp * cs,
-        "YawRate": r * cp * cs,
+        "PitchRate": r * sp * cs + slope_rate * cp,
+        "YawRate": r * cp * cs - slope_rate * sp,
         "AccelX": fx,
         "AccelY": fy * cp + fz * sp,
         "AccelZ": -fy * sp + fz * cp,
@@ -231,7 +253,7 @@ def make_sensor_streams(
         ("IMU_Accel", t_acc, ("AccelX", "AccelY", "AccelZ"), accel_bias, cfg.accel_noise),
     ):
         ts = np.maximum(tt - cfg.imu_delay, 0.0)
-        clean = imu_readings(rec, ts, p.g, cfg.imu_height, cfg.imu_forward, math.radians(pert.road_slope))
+        clean = imu_readings(rec, ts, p.g, cfg.imu_height, cfg.imu_forward, *road_grade(pert, rec, ts))
         if pert.imu_mount_roll != 0.0 or pert.imu_mount_pitch != 0.0:
             turned = mounted(
                 tuple(clean[k] for k in keys), math.radians(pert.imu_mount_roll), math.radians(pert.imu_mount_pitch)
@@ -268,7 +290,7 @@ def make_sensor_streams(
     u = _sample(rec, X + U, ts)
     vy = _sample(rec, X + VY, ts)
     psi = _sample(rec, X + PSI, ts)
-    speed = np.hypot(u, vy)
+    speed = np.hypot(u, vy) * np.cos(road_grade(pert, rec, ts)[0])  # the receiver's speed is the horizontal one
     sog = np.maximum(speed + rng.standard_normal(len(tt)) * cfg.gps_speed_noise, 0.0)
     course_noise = cfg.gps_course_noise * np.maximum(1.0, 2.0 / np.maximum(speed, 1e-3))
     course = np.degrees(psi + np.arctan2(vy, np.maximum(u, 1e-6))) + rng.standard_normal(len(tt)) * course_noise
