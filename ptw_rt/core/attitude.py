@@ -34,9 +34,11 @@ walks and survive a restart of the dynamic states.
   turn about the vertical leaks into it: roll' = p + tan(pitch) r_ground, heading' = r_ground / cos(pitch). The
   pitch is a state, taught by the turns (the roll drifts by tan(pitch) r_ground where the accelerometer says it does
   not) and seeded by the speed stage's longitudinal offset, g sin(pitch) + b_ax (`speed.OUT_ACCEL_OFFSET`).
+- **A road whose grade changes**: the pitch rate is a state the gyros measure and the vertical accelerometer feels
+  (u pitch', with its bias b_az), free to move only while both see the chassis pitch.
 
-Extended Kalman filter on x = [phi, psi, b_p, b_q, b_r, b_ay, pitch, b_ax, v_y, a_v]; innovations beyond
-``gate`` standard deviations are not applied (counted in OUT_REJECTED).
+Extended Kalman filter on x = [phi, psi, b_p, b_q, b_r, b_ay, pitch, b_ax, b_az, pitch rate, v_y, a_v]; innovations
+beyond ``gate`` standard deviations are not applied (counted in OUT_REJECTED).
 
 Stage 3 of the estimator (`attitude_stage`, at the end of this module): the filter fed from the inputs and
 speed stages' outputs, with standstill detection and the GPS course; `attitude_step` is the filter alone.
@@ -103,7 +105,7 @@ STATE = Layout(
     held=1,  # consecutive cycles that integrated a held rate
     corrupt_run=1,  # cycles with corrupt input in the current burst (clean gaps shorter than BURST_GAP allowed)
     clean_run=1,  # consecutive cycles without corrupt input
-    burst_biases=N_BIASES,  # the slow states (b_p .. b_ax) as the current burst found them (only updates move them)
+    burst_biases=N_BIASES,  # the slow states (b_p .. b_az) as the current burst found them (only updates move them)
     burst_roll_moved=1,  # rad, what the measurement updates have moved the roll by since the burst began
     yaw_accel=1,  # rad/s^2, the ground yaw rate's derivative, low-passed over YAW_ACCEL_TIME (the sideslip's drive)
     imu_fresh_run=1,  # consecutive cycles with new sound samples of the gyros and accelerometer (`_roll_gyro_step`)
@@ -545,6 +547,13 @@ def _roll_gyro_step(
     return 0.0, 0.0
 
 
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _running_mean_sd(alpha: float) -> float:
+    """The sd of an exponential running mean (weight alpha) of a white unit-variance sequence: the consistency
+    monitor's unit, which the grade rate's gate reads the lateral innovations' mean in too."""
+    return math.sqrt(alpha / (2.0 - alpha))
+
+
 @njit(cache=True)
 def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     """(Re)start roll, heading, sideslip and the grade's pitch rate; keep the biases and their covariance."""
@@ -943,8 +952,8 @@ def attitude_step(
     seen2 = min(st[ST_PITCH_RATE_SEEN] ** 2, st[ST_PITCH_RATE_FELT] ** 2)  # the gyros and the accelerometer agree
     # ... and the lateral specific force agrees with the roll: a roll gone wrong (a gyro's fault) makes a pitch rate
     # of the turn's rate times its error, which the grade's rate must not take (closed at half the monitor's limit)
-    alpha = min(dt / prm[A_CONSISTENCY_TIME], 1.0)
-    lateral_doubt = abs(st[ST_MEAN_LATERAL]) / (math.sqrt(alpha / (2.0 - alpha)) * prm[A_CONSISTENCY_LIMIT])
+    lateral_sd = _running_mean_sd(min(dt / prm[A_CONSISTENCY_TIME], 1.0))
+    lateral_doubt = abs(st[ST_MEAN_LATERAL]) / (lateral_sd * prm[A_CONSISTENCY_LIMIT])
     opening = seen2 / (seen2 + PITCH_RATE_LEVEL**2) * max(1.0 - GRADE_DOUBT_CLOSES * lateral_doubt, 0.0)
     P[X_PITCH_RATE, X_PITCH_RATE] += 2.0 * PITCH_RATE_SD**2 * pitch_rate_decay * opening
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
@@ -1161,8 +1170,8 @@ def consistency_monitor(st: np.ndarray, prm: np.ndarray, out: np.ndarray, riding
         st[ST_MEAN_PITCH] += alpha * (_clip_nu(out[OUT_NU_PITCH]) - st[ST_MEAN_PITCH])
         if out[OUT_COURSE_FIX] != 0.0:
             st[ST_MEAN_COURSE] += alpha_fix * (_clip_nu(out[OUT_NU_COURSE]) - st[ST_MEAN_COURSE])
-    white_sd = math.sqrt(alpha / (2.0 - alpha))  # sd of the running mean of a white unit-variance sequence
-    white_sd_fix = math.sqrt(alpha_fix / (2.0 - alpha_fix))
+    white_sd = _running_mean_sd(alpha)
+    white_sd_fix = _running_mean_sd(alpha_fix)
     stat = max(max(abs(st[ST_MEAN_LATERAL]), abs(st[ST_MEAN_PITCH])) / white_sd, abs(st[ST_MEAN_COURSE]) / white_sd_fix)
     limit = prm[A_CONSISTENCY_LIMIT]
     if stat > limit:
