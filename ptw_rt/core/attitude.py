@@ -205,7 +205,11 @@ INITIAL_AV_SD = 1.0  # m/s^2: its rate
 # is mounted square to a degree or two. In a turn the vertical the vehicle turns about then has a part along the
 # gyro's roll axis, roll' = p + tan(pitch) r_ground: on a 3 deg slope 0.05 r, the roll off by a degree in town.
 INITIAL_PITCH_SD = 0.1  # rad, a priori
-PITCH_DRIFT = 0.005  # rad/sqrt(s): what of the pitch's change its rate does not carry
+# What of the pitch's change its rate does not carry. Small: a pitch that may walk on its own lets a false pitch rate
+# (a gyro bias learned wrong, in a long corner) run for tens of seconds while the longitudinal accelerometer, which
+# sees every degree of pitch as 0.17 m/s^2 against the GPS, says the pitch never moved (0.005 before the rate was a
+# state: docs/estimator.md, "The pitch carried by its rate")
+PITCH_DRIFT = 0.001  # rad/sqrt(s)
 # A road's grade changes: over a crest or through a dip the chassis pitches, at u over the vertical curve's radius
 # (a 4 deg swing of the grade every 300 m: 0.0015 / m, 0.015 rad/s at 36 km/h). The gyros measure that rate,
 # q cos(roll) - r sin(roll), and a turn on a level road makes none (its axis is vertical), so the pitch rate is a state,
