@@ -60,6 +60,22 @@ def test_a_long_corner_near_the_grip_limit_raises_no_alarm(seed, perturb):
 
 
 @pytest.mark.slow
+def test_an_imu_noisier_than_the_file_says_takes_no_step_and_reads_its_biases_at_rest_as_it_is():
+    """A 5x noisier IMU than the file's (`urban`, which starts from rest). The step check began from the file's noise
+    and took a step 0.2 s after the ride reached its speed (the roll 3.5 deg off, VALID 2.9 deg off, near the 3 deg
+    promise). It now learns the comparison's noise before it may take one. At rest the gyros read their biases with
+    the file's noise, 5x surer than they were, and so the roll then ran 1.7 deg off (RMSE 0.54 deg); they are now
+    read with the noise they show (docs/estimator.md, "The step check learns its noise")."""
+    ev = evaluate_ride(simulate("urban", perturbation=parse_perturbations(["imu_noise=5"])))
+    E = ev.estimates
+    assert not (E[:, L.E_REASONS].astype(int) & L.REASON_GYRO_STEP).any()
+    err_deg = np.degrees(E[:, L.E_ROLL] - ev.truth["roll"])
+    assert math.sqrt(float(np.mean(err_deg[ev.mask] ** 2))) < 0.45
+    roll_valid = ev.mask & ((E[:, L.E_VALID].astype(int) & L.V_ROLL) != 0)
+    assert np.abs(err_deg[roll_valid]).max() < 1.5
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [202, 312])
 def test_a_weave_whose_peaks_are_gated_out_raises_no_alarm(seed):
     """`radius_accel` +50 kg: 3-4 Hz weaves at 28-30 deg of lean where a_y swings from -1.5 to 10 m/s^2 within 0.2 s.
