@@ -41,6 +41,7 @@ from ptw_rt.core.layout import (
     S_STALE,
     S_STEER_COUNT,
     S_SUSPECT,
+    S_TIME,
     S_YAW_RATE_BODY,
 )
 from ptw_rt.core.stage import Layout, Stage
@@ -68,6 +69,7 @@ STATE = Layout(
     rates_pending=1,  # the same for the gyro rates
     rates_candidate=3,  # p, q, r [rad/s]
     accel_sound=1,  # 1 while the accelerometer's last frame was sound (a cycle without a new frame re-reads it)
+    last_time=1,  # s, the previous cycle's time stamp (S_TIME)
 )
 (
     ST_LAST,
@@ -83,6 +85,7 @@ STATE = Layout(
     ST_RATES_PENDING,
     ST_RATES_CANDIDATE,
     ST_ACCEL_SOUND,
+    ST_LAST_TIME,
 ) = STATE.offsets
 
 # The body cannot change its rotation rate faster than this: a scooter's quickest roll or yaw flick is ~20 rad/s^2
@@ -382,7 +385,11 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     out[OUT_COURSE] = _wrap_pi(course)
     out[OUT_COURSE_NEW] = 1.0 if course_new else 0.0
     imu = MSG_IMU_RATES | MSG_IMU_ACCEL
-    imu_fresh = (fresh & imu) == imu and (held & imu) == 0 and not reasons_now & REASON_OUT_OF_RANGE
+    # ... and one cycle after the last: after missed cycles (an overrun) the newest samples are not the next ones, and
+    # their change is not one period's (docs/estimator.md, "The step check learns its noise")
+    one_period = abs(sample[S_TIME] - st[ST_LAST_TIME] - dt) < 0.5 * dt
+    st[ST_LAST_TIME] = sample[S_TIME]
+    imu_fresh = (fresh & imu) == imu and (held & imu) == 0 and not reasons_now & REASON_OUT_OF_RANGE and one_period
     out[OUT_IMU_FRESH] = 1.0 if imu_fresh else 0.0
 
 
