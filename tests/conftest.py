@@ -1,7 +1,10 @@
-"""Shared fixtures: the default configuration and one fresh design per test session."""
+"""Shared fixtures (the default configuration and one fresh design per test session) and shared checks."""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 
 from ptw_rt.paths import DEFAULT_CONFIG
@@ -101,3 +104,19 @@ def design(settings):
     from ptw_rt.paths import DEFAULT_DESIGN
 
     return load_design(DEFAULT_DESIGN, settings.config_hash)
+
+
+def ride_with_roll_right(scenario, perturb, rmse_deg, valid_max_deg, valid_share=0.5):
+    """The ride on the default vehicle, `perturb` its perturbations, evaluated, once its roll RMSE is below
+    `rmse_deg`, the roll VALID more than `valid_share` of the scored time and within `valid_max_deg` while VALID."""
+    from ptw_rt.core import layout as L  # noqa: N812
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import parse_perturbations, simulate
+
+    ev = evaluate_ride(simulate(scenario, perturbation=parse_perturbations(perturb)))
+    err_deg = np.degrees(ev.estimates[:, L.E_ROLL] - ev.truth["roll"])
+    assert math.sqrt(float(np.mean(err_deg[ev.mask] ** 2))) < rmse_deg
+    roll_valid = ev.mask & ((ev.estimates[:, L.E_VALID].astype(int) & L.V_ROLL) != 0)
+    assert roll_valid.mean() > valid_share
+    assert np.abs(err_deg[roll_valid]).max() < valid_max_deg
+    return ev

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import ride_with_roll_right
 
 from ptw_rt.core import layout as L  # noqa: N812
 from ptw_rt.eval.evaluate import evaluate_ride
@@ -42,18 +43,6 @@ def test_on_a_slope_the_roll_and_the_valid_stiffness_stay_right(scenario, slope_
     assert t[-1] > 20.0
 
 
-def _ride_with_roll_right(scenario, perturb, rmse_deg, valid_max_deg):
-    """The ride evaluated, once its roll RMSE is below `rmse_deg`, the roll VALID more than half the scored time and
-    within `valid_max_deg` while VALID."""
-    ev = evaluate_ride(simulate(scenario, perturbation=parse_perturbations(perturb)))
-    err_deg = np.degrees(ev.estimates[:, L.E_ROLL] - ev.truth["roll"])
-    assert math.sqrt(float(np.mean(err_deg[ev.mask] ** 2))) < rmse_deg
-    roll_valid = ev.mask & ((ev.estimates[:, L.E_VALID].astype(int) & L.V_ROLL) != 0)
-    assert roll_valid.mean() > 0.5
-    assert np.abs(err_deg[roll_valid]).max() < valid_max_deg
-    return ev
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("scenario", "hills", "before"),
@@ -70,7 +59,7 @@ def test_on_a_hilly_road_the_roll_and_the_valid_stiffness_stay_right(scenario, h
     changes"). The VALID bound is the promise's 3 deg with margin: measured 1.74 deg on `handling_40_120`, as the
     ride starts on the steepest change of grade with the pitch gyro's bias unknown; 1.46 while the pitch could walk
     on its own, "The pitch carried by its rate")."""
-    ev = _ride_with_roll_right(scenario, hills, rmse_deg=0.5, valid_max_deg=2.0)
+    ev = ride_with_roll_right(scenario, hills, rmse_deg=0.5, valid_max_deg=2.0)
     E, truth = ev.estimates, ev.truth
     cornering_valid = ev.mask & ((E[:, L.E_VALID].astype(int) & L.V_CORNERING) != 0)
     stiffness_err = 100.0 * np.abs(E[:, L.E_C_ALPHA_FRONT] / truth["c_alpha_front"] - 1.0)
@@ -85,7 +74,7 @@ def test_a_noisy_imu_in_a_long_corner_does_not_turn_the_pitch():
     could walk on its own (0.005 rad/sqrt(s)) that rate ran for tens of seconds and took the roll 2 deg off (RMSE
     0.71 deg, the peer's 1.06); carried by its rate alone, the pitch it turns is one the longitudinal accelerometer
     denies (docs/estimator.md, "The pitch carried by its rate")."""
-    _ride_with_roll_right("radius_accel", ["imu_noise=5"], rmse_deg=0.45, valid_max_deg=1.5)
+    ride_with_roll_right("radius_accel", ["imu_noise=5"], rmse_deg=0.45, valid_max_deg=1.5)
 
 
 @pytest.mark.slow

@@ -112,7 +112,7 @@ STATE = Layout(
     step_ms=1,  # (rad/s)^2, running mean square of the roll-gyro step statistic in healthy riding (its noise)
     step_ms_samples=1,  # statistics that went into step_ms, up to GYRO_STEP_LEARN_CYCLES (kept over a restart)
     standstill_ms=1,  # (rad/s)^2, the gyros' mean square about their biases at standstill (their noise as read)
-    standstill_samples=1,  # standstill cycles that went into it, up to GYRO_STEP_LEARN_CYCLES
+    standstill_samples=1,  # standstill cycles that went into it, up to STANDSTILL_NOISE_CYCLES
     step_last=1,  # rad/s, that statistic in the previous cycle (0 without one)
     step_candidate=1,  # rad/s, a step the last cycle's statistic found, taken if this cycle's confirms it (else 0)
     step_before=1,  # rad/s, the statistic before that candidate
@@ -253,6 +253,10 @@ GYRO_STEP_LEARN_CYCLES = 100  # statistics averaged (the prior counting as one) 
 GYRO_STEP_SIZE_DOUBT = 0.1  # share of a step taken that its uncertainty adds beyond the comparison's noise ...
 GYRO_STEP_SPIKE_DOUBT = 0.4  # ... or, where it may have been a spike, this: the roll's 3 sd then outgrow its drift
 GYRO_STEP_MIN_HEIGHT = 0.1  # m: an IMU lower than this sees too little of the roll acceleration to check the gyro
+# At rest the gyros' noise about their biases is read as a plain mean over the first STANDSTILL_NOISE_CYCLES, then
+# as a running one of weight 1 / (STANDSTILL_NOISE_CYCLES + 1) (1 s at 100 Hz). Not the step check's learner: that
+# one clips what it averages once it tests, which a reading at rest, where nothing is tested, has no reason to.
+STANDSTILL_NOISE_CYCLES = 100
 
 # ---- parameters (float64 vector: `attitude_params` builds the filter's from the config, `build_params` all) ----
 PARAMS = Layout(
@@ -843,8 +847,8 @@ def attitude_step(
         # more than the file's (an IMU noisier than the file's read its biases 5x more surely than they were)
         seen = ((p - x[X_BP]) ** 2 + (q - x[X_BQ]) ** 2 + (r - x[X_BR]) ** 2) / 3.0
         n = st[ST_STANDSTILL_SAMPLES]
-        st[ST_STANDSTILL_MS] += (seen - st[ST_STANDSTILL_MS]) * max(1.0 / (n + 1.0), prm[A_DT] / GYRO_STEP_NOISE_TIME)
-        st[ST_STANDSTILL_SAMPLES] = min(n + 1.0, GYRO_STEP_LEARN_CYCLES)
+        st[ST_STANDSTILL_MS] += (seen - st[ST_STANDSTILL_MS]) / (n + 1.0)
+        st[ST_STANDSTILL_SAMPLES] = min(n + 1.0, STANDSTILL_NOISE_CYCLES)
         rs = max(prm[A_R_STANDSTILL_RATE] ** 2, st[ST_STANDSTILL_MS])
         for b, m in ((X_BP, p), (X_BQ, q), (X_BR, r)):
             _clear_h(H)
