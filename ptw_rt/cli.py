@@ -286,6 +286,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --random: each ride a random route (route_N: segments nobody tuned on) instead of the scenarios",
     )
     p.add_argument(
+        "--hills",
+        action="store_true",
+        help="with --random: each ride on a hilly road (a grade of -4..4 deg swinging by up to 6 deg over 200-1000 m)",
+    )
+    p.add_argument(
         "--jobs",
         type=_worker_count,
         default=None,

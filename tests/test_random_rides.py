@@ -105,6 +105,21 @@ def test_the_command_runs_rides_and_prints_json():
         assert ride["roll_rmse_deg"] is not None and ride["roll_tolerance_deg"] == 3.0
 
 
+def test_hilly_rides_draw_the_same_rides_on_a_road_whose_grade_is_drawn_within_its_range():
+    """`--hills` adds the road (HILL_DRAWS) after every other draw: the set's rides are the same rides on hills."""
+    ranges = {name: (low, high) for name, low, high in rr.HILL_DRAWS}
+    for i in range(16):
+        for routes in (False, True):
+            scenario, perturb, seed = rr.draw_ride(5, i, routes=routes, hills=True)
+            assert (scenario, perturb[: len(rr.DRAWS)], seed) == rr.draw_ride(5, i, routes=routes)
+            road = dict(item.split("=") for item in perturb[len(rr.DRAWS) :])
+            assert set(road) == set(ranges)
+            for name, value in road.items():
+                assert ranges[name][0] <= float(value) <= ranges[name][1]
+            ride = parse_perturbations(list(perturb))
+            assert ride.road_slope_length == float(road["road_slope_length"])
+
+
 @pytest.mark.parametrize(
     "args",
     [
@@ -118,6 +133,7 @@ def test_the_command_runs_rides_and_prints_json():
         ["--random", "2", "--perturb", "stiffness=0.7"],
         ["--random", "2", "--seed", "3"],
         ["--routes", "--scenario", "dlc_50"],  # --routes goes with --random
+        ["--hills", "--scenario", "dlc_50"],  # --hills too
     ],
 )
 def test_a_bad_request_is_one_line_and_exit_2(args):

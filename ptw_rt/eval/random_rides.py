@@ -58,6 +58,14 @@ DRAWS = (
     ("rider_noise", 1.0, 2.0),  # a busier rider
 )
 WHOLE_COUNTS = ("steer_offset",)
+# with --hills, the road under the ride, drawn after everything else (so a set's other draws stay the same): a mean
+# grade, how far it swings about it, and over how many metres (crests and dips; docs/estimator.md, "Hills on
+# other seeds")
+HILL_DRAWS = (
+    ("road_slope", -4.0, 4.0),  # deg, uphill positive
+    ("road_slope_swing", 0.0, 6.0),  # deg
+    ("road_slope_length", 200.0, 1000.0),  # m ridden over one swing
+)
 NOISE_SEEDS = (20, 10000)  # the rides' noise seeds are drawn from [20, 10000): not the scenarios' own
 MAX_RIDES = 100_000
 MAX_GENERATOR_SEED = 10**9  # sets: ride i of set G draws from a generator seeded 1000 + i + 1000 G
@@ -65,9 +73,12 @@ WORST_SHOWN = 5
 TORQUE_KEY = "torque_valid_max_mean_err_nm"
 
 
-def draw_ride(generator_seed: int, index: int, routes: bool = False) -> tuple[str, tuple[str, ...], int]:
+def draw_ride(
+    generator_seed: int, index: int, routes: bool = False, hills: bool = False
+) -> tuple[str, tuple[str, ...], int]:
     """(scenario, perturbations, noise seed) of ride `index` of set `generator_seed`; with `routes`, the ride is a
-    random route (``route_N``, ``ptw_rt.sim.routes``) drawn last, so the other draws are the same as without."""
+    random route (``route_N``, ``ptw_rt.sim.routes``), and with `hills` its road's grade (HILL_DRAWS), each drawn
+    after the rest, so the other draws are the same as without."""
     rng = np.random.default_rng(1000 + index + 1000 * generator_seed)
     perturb = []
     for name, low, high in DRAWS:
@@ -75,6 +86,8 @@ def draw_ride(generator_seed: int, index: int, routes: bool = False) -> tuple[st
         perturb.append(f"{name}={value:.3f}")
     seed = int(rng.integers(*NOISE_SEEDS))
     scenario = f"{ROUTE_PREFIX}{int(rng.integers(0, MAX_ROUTE))}" if routes else SCENARIOS[index % len(SCENARIOS)]
+    if hills:
+        perturb += [f"{name}={float(rng.uniform(low, high)):.3f}" for name, low, high in HILL_DRAWS]
     return scenario, tuple(perturb), seed
 
 
@@ -212,10 +225,11 @@ def run_random(
     workers: int | None = None,
     progress: bool = True,
     routes: bool = False,
+    hills: bool = False,
 ) -> dict:
     jobs = []
     for i in range(count):
-        scenario, perturb, seed = draw_ride(generator_seed, i, routes)
+        scenario, perturb, seed = draw_ride(generator_seed, i, routes, hills)
         jobs.append((scenario, perturb, seed, config, design_file))
     bar = Progress(len(jobs), label="random rides") if progress else None
     t0 = time.perf_counter()
@@ -225,6 +239,7 @@ def run_random(
     return {
         "generator_seed": generator_seed,
         "routes": routes,
+        "hills": hills,
         "summary": summarise(rides),
         "rides_detail": rides,
         "wall_s": round(time.perf_counter() - t0, 1),
@@ -241,7 +256,8 @@ def summary_text(result: dict) -> str:
         return "kept" if s["promises_kept"][name] else "BROKEN"
 
     lines = [
-        f"{n} random rides (set {result['generator_seed']}{', random routes' if result.get('routes') else ''}) on"
+        f"{n} random rides (set {result['generator_seed']}{', random routes' if result.get('routes') else ''}"
+        f"{', hilly roads' if result.get('hills') else ''}) on"
         f" {result['workers']} processes in {result['wall_s']} s",
         f"roll: <= the peer on {roll['le_peer']} of {roll['scored']}, <= {ROLL_MAX_DEG:g} deg on {roll['le_1deg']};"
         f" largest RMSE {roll['largest_rmse_deg']} deg",
@@ -317,6 +333,7 @@ def run_random_command(args) -> int:
         design_file=args.design_file,
         workers=getattr(args, "jobs", None),
         routes=getattr(args, "routes", False),
+        hills=getattr(args, "hills", False),
     )
     emit(result, args.json, summary_text(result) if not args.json else "")
     return 0
