@@ -966,6 +966,8 @@ def attitude_step(
         grow = (2.0 * st[ST_HELD] - 1.0) * (UNMEASURED_RATE_SD * dt) ** 2
         P[X_PHI, X_PHI] += grow
         P[X_PSI, X_PSI] += grow
+        # ... and nothing measures the grade's rate: it drives as on a hilly road, whatever the gate said before
+        P[X_PITCH_RATE, X_PITCH_RATE] += 2.0 * PITCH_RATE_SD**2 * pitch_rate_decay
     else:
         st[ST_HELD] = 0.0
     qb = prm[A_Q_GYRO_BIAS] ** 2 * dt
