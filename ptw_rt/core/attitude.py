@@ -931,6 +931,7 @@ def attitude_step(
     turn_accel = -x[X_VY] * rg1 - prm[A_IMU_FORWARD] * rg1 * rg1
     st[ST_TURN_ACCEL_MEAN] += dt / spd.OFFSET_TIME * (turn_accel - st[ST_TURN_ACCEL_MEAN])
     pitch_rate_decay = dt / PITCH_RATE_TIME
+    pitch_rate_drive = 2.0 * PITCH_RATE_SD**2 * pitch_rate_decay  # the Markov process's, on a hilly road
     x[X_PITCH_RATE] *= 1.0 - pitch_rate_decay
     # P <- F P F' + Q with F = I + dt A, A sparse: [phi,bp]=-1, [psi,phi]=pitch, [psi,bq]=-s, [psi,br]=-c (the
     # psi row over cos(pitch) and tan(pitch) of it added to the phi row), [phi,pitch] = r_g / cos^2(pitch),
@@ -967,7 +968,7 @@ def attitude_step(
         P[X_PHI, X_PHI] += grow
         P[X_PSI, X_PSI] += grow
         # ... and nothing measures the grade's rate: it drives as on a hilly road, whatever the gate said before
-        P[X_PITCH_RATE, X_PITCH_RATE] += 2.0 * PITCH_RATE_SD**2 * pitch_rate_decay
+        P[X_PITCH_RATE, X_PITCH_RATE] += pitch_rate_drive
     else:
         st[ST_HELD] = 0.0
     qb = prm[A_Q_GYRO_BIAS] ** 2 * dt
@@ -985,7 +986,7 @@ def attitude_step(
     lateral_sd = _running_mean_sd(min(dt / prm[A_CONSISTENCY_TIME], 1.0))
     lateral_doubt = abs(st[ST_MEAN_LATERAL]) / (lateral_sd * prm[A_CONSISTENCY_LIMIT])
     opening = seen2 / (seen2 + PITCH_RATE_LEVEL**2) * max(1.0 - GRADE_DOUBT_CLOSES * lateral_doubt, 0.0)
-    P[X_PITCH_RATE, X_PITCH_RATE] += 2.0 * PITCH_RATE_SD**2 * pitch_rate_decay * opening
+    P[X_PITCH_RATE, X_PITCH_RATE] += pitch_rate_drive * opening
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
     lat_ratio = _corner_excess(x[X_PHI], prm) / prm[A_SIDESLIP_ACCEL_REF]
     # ... and in a quick change of yaw at speed: the slip angles follow the forces, v_y' ~ (l_r - u^2 m_r / C_r) r'

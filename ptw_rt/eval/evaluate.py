@@ -462,12 +462,12 @@ def _run_all(jobs: list[tuple]) -> list[dict]:
 
 
 def run_evaluate(args) -> int:
-    if getattr(args, "routes", False) and getattr(args, "random", None) is None:
-        raise UserFacingError("--routes goes with --random N (one route alone: --scenario route_N)")
-    if getattr(args, "hills", False) and getattr(args, "random", None) is None:
-        raise UserFacingError(
-            "--hills goes with --random N (one hilly ride: --perturb road_slope_swing=DEG, road_slope_length=M)"
-        )
+    for option, one_ride in (
+        ("routes", "one route alone: --scenario route_N"),
+        ("hills", "one hilly ride: --perturb road_slope_swing=DEG, road_slope_length=M"),
+    ):
+        if getattr(args, option, False) and getattr(args, "random", None) is None:
+            raise UserFacingError(f"--{option} goes with --random N ({one_ride})")
     if getattr(args, "random", None) is not None:  # first: it refuses the options it would ignore, --matrix too
         from ptw_rt.eval.random_rides import run_random_command
 

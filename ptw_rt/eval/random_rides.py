@@ -80,15 +80,21 @@ def draw_ride(
     random route (``route_N``, ``ptw_rt.sim.routes``), and with `hills` its road's grade (HILL_DRAWS), each drawn
     after the rest, so the other draws are the same as without."""
     rng = np.random.default_rng(1000 + index + 1000 * generator_seed)
-    perturb = []
-    for name, low, high in DRAWS:
-        value = float(rng.integers(low, high + 1)) if name in WHOLE_COUNTS else float(rng.uniform(low, high))
-        perturb.append(f"{name}={value:.3f}")
+    perturb = _drawn(rng, DRAWS)
     seed = int(rng.integers(*NOISE_SEEDS))
     scenario = f"{ROUTE_PREFIX}{int(rng.integers(0, MAX_ROUTE))}" if routes else SCENARIOS[index % len(SCENARIOS)]
     if hills:
-        perturb += [f"{name}={float(rng.uniform(low, high)):.3f}" for name, low, high in HILL_DRAWS]
+        perturb += _drawn(rng, HILL_DRAWS)
     return scenario, tuple(perturb), seed
+
+
+def _drawn(rng: np.random.Generator, draws: tuple) -> list[str]:
+    """`--perturb` items, each (name, low, high) of `draws` drawn in order (whole counts for WHOLE_COUNTS)."""
+    items = []
+    for name, low, high in draws:
+        value = float(rng.integers(low, high + 1)) if name in WHOLE_COUNTS else float(rng.uniform(low, high))
+        items.append(f"{name}={value:.3f}")
+    return items
 
 
 def reproduce_command(ride: dict) -> str:
