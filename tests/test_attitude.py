@@ -191,12 +191,32 @@ def test_restart_keeps_biases():
     st = att.new_state()
     o = np.zeros(att.OUT_SIZE)
     att.attitude_step(st, o, prm, 0.0, 0.0, 0.0, 0.0, -G, 0.0, 0.1, True, True, 0.0, False, False)
-    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, 1e-3, 0.02)
+    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, 1e-3, 0.02, 0.05)
     att.restart(st)
     att.attitude_step(st, o, prm, 0.0, 0.0, 0.0, 0.0, -G, 0.0, 0.1, True, True, 0.0, False, False)
     assert st[att.ST_INIT] == 1.0
     assert st[att.ST_X + att.X_BR] == pytest.approx(0.003, abs=1e-6)
     assert st[att.ST_X + att.X_BAY] == pytest.approx(0.04, abs=1e-3)
+
+
+def test_biases_restored_before_the_first_sample_leave_the_states_not_restored_at_their_priors():
+    """The state file keeps b_p, b_q, b_r and b_ay; the pitch, b_ax and b_az start from their priors (a state with no
+    variance is never learned: a slope's pitch read as level on every ride after the first). Restored into a filter
+    that has run, those three are kept as learned."""
+    settings = load_settings(DEFAULT_CONFIG)
+    prm = att.attitude_params(DT, G, 0.5, 0.0, settings.estimator.attitude, 0.1)
+    st = att.new_state()
+    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, 1e-3, 0.02, 0.05)
+    o = np.zeros(att.OUT_SIZE)
+    att.attitude_step(st, o, prm, 0.0, 0.0, 0.0, 0.0, -G, 0.0, 0.1, True, True, 0.0, False, False)
+    P = st[att.ST_P : att.ST_P + att.N_X * att.N_X].reshape((att.N_X, att.N_X))
+    assert P[att.X_PITCH, att.X_PITCH] == pytest.approx(att.INITIAL_PITCH_SD**2, rel=0.01)
+    assert P[att.X_BAX, att.X_BAX] == pytest.approx(0.05**2, rel=0.01)
+    assert P[att.X_BAZ, att.X_BAZ] == pytest.approx(0.05**2, rel=0.01)
+    assert st[att.ST_X + att.X_BQ] == pytest.approx(0.002, abs=1e-6)
+    P[att.X_PITCH, att.X_PITCH] = 1e-6  # as if learned
+    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, 1e-3, 0.02, 0.05)
+    assert P[att.X_PITCH, att.X_PITCH] == 1e-6
 
 
 def test_standstill_reads_gyro_biases():

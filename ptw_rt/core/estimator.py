@@ -339,6 +339,7 @@ class Estimator:
             *values,
             RESTORED_BIAS_SHARE * tuning.initial_gyro_bias_sd,
             RESTORED_BIAS_SHARE * tuning.initial_accel_bias_sd,
+            tuning.initial_accel_bias_sd,
         )
 
     def learned_steer_zero(self) -> tuple[float, float] | None:

@@ -152,11 +152,15 @@ def evaluate_ride(
     config: Path = DEFAULT_CONFIG,
     design_file: Path | None = None,
     initial_stiffness_scale: tuple[float, float] | None = None,
+    initial_sensor_biases: tuple[float, float, float, float] | None = None,
 ) -> Evaluation:
     """Score one ride. `initial_stiffness_scale` = (front, rear): the estimator starts from the nominal
     tyres times these factors (a wrong start), if it offers `set_initial_stiffness_scale(front, rear)`;
-    `result["initial_stiffness_scale"]` then says whether it was applied."""
+    `result["initial_stiffness_scale"]` then says whether it was applied. `initial_sensor_biases` = (b_p, b_q, b_r
+    [rad/s], b_ay [m/s^2]): the estimator starts from them as the daemon does from its state file."""
     runner = shared_runner(config, design_file)  # a matrix's or a random set's worker loads the files once
+    if initial_sensor_biases is not None:
+        runner.estimator.restore_sensor_biases(initial_sensor_biases)
     settings = runner.settings
     applied = None
     if initial_stiffness_scale is not None:
