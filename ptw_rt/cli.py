@@ -291,6 +291,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --random: each ride on a hilly road (a grade of -4..4 deg swinging by up to 6 deg over 200-1000 m)",
     )
     p.add_argument(
+        "--restored-biases",
+        action="store_true",
+        help="with --scenario, --all or --random: the estimator starts from the ride's own IMU biases, as the daemon"
+        " does from a state file an earlier ride wrote (the matrix starts from nothing)",
+    )
+    p.add_argument(
         "--jobs",
         type=_worker_count,
         default=None,

@@ -70,6 +70,8 @@ def test_the_summary_names_a_broken_promise_and_the_command_that_replays_it():
     assert s["roll"]["worse_than_peer"][0]["roll"] == 0.9
     other = _ride(config="/v/other.yaml", design_file="/v/other.npz")
     assert rr.reproduce_command(other).endswith("--config /v/other.yaml --design-file /v/other.npz")
+    restored = _ride(restored_biases=True)  # a set run with --restored-biases replays with it
+    assert rr.reproduce_command(restored).endswith("--perturb steer_offset=0.000 --restored-biases")
     text = rr.summary_text({"generator_seed": 0, "workers": 1, "wall_s": 1.0, "summary": s})
     assert text.count("BROKEN") == 2 and "--seed 44" in text
 
@@ -134,6 +136,7 @@ def test_hilly_rides_draw_the_same_rides_on_a_road_whose_grade_is_drawn_within_i
         ["--random", "2", "--seed", "3"],
         ["--routes", "--scenario", "dlc_50"],  # --routes goes with --random
         ["--hills", "--scenario", "dlc_50"],  # --hills too
+        ["--matrix", "--restored-biases"],  # the matrix starts from no persisted state
     ],
 )
 def test_a_bad_request_is_one_line_and_exit_2(args):

@@ -17,7 +17,7 @@ import pytest
 from conftest import ride_with_roll_right
 
 from ptw_rt.core import layout as L  # noqa: N812
-from ptw_rt.eval.evaluate import evaluate_ride
+from ptw_rt.eval.evaluate import evaluate_ride, evaluate_scenario
 from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
 from ptw_rt.sim.ride import parse_perturbations, simulate
 
@@ -49,12 +49,30 @@ def test_on_a_slope_biases_restored_from_the_state_file_leave_the_pitch_to_learn
     """The daemon starts every ride after its first from the biases its state file kept (b_p, b_q, b_r, b_ay). The
     pitch and the other accelerometers' biases are not kept; they were left at zero with no variance, so the
     pitch was never learned and a slope's turns leaked into the roll (RMSE `before` deg, against 0.05-0.06 from
-    nothing). Restored here are the ride's own true biases."""
-    ride = simulate(scenario, perturbation=parse_perturbations([f"road_slope={slope_deg}"]))
-    gyro, accel = ride.sensor_meta["gyro_bias"], ride.sensor_meta["accel_bias"]
-    ev = evaluate_ride(ride, initial_sensor_biases=(gyro[0], gyro[1], gyro[2], accel[1]))
+    nothing). Restored here are the ride's own true biases (`ptw-rt evaluate --restored-biases`)."""
+    ev = evaluate_scenario(scenario, perturb=[f"road_slope={slope_deg}"], restored_biases=True)
+    assert ev.result is not None
     err_deg = np.degrees(ev.estimates[:, L.E_ROLL] - ev.truth["roll"])[ev.mask]
     assert math.sqrt(float(np.mean(err_deg**2))) < 0.15
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("scenario", "before"),
+    [("slalom_30", "roll 0.203 deg, stiffness VALID 34.9 % off"), ("mu_drop", "roll 0.237 deg")],
+)
+def test_on_a_hilly_road_a_ride_started_from_restored_biases_takes_the_gyros_pitch_rate_as_the_grades(scenario, before):
+    """With the pitch gyro's bias known (the state file's), the gyros' pitch rate at a start is the grade's: the
+    grade's rate starts at its hilly road's spread, not a level road's. Before, half of a crest's 0.011 rad/s went
+    into b_q in the first second (`before`, seed 11, IMU biases x2 and tyres x1.3 on 3 deg every 250 m)."""
+    hills = ["road_slope_swing=3", "road_slope_length=250", "stiffness=1.3", "imu_bias=2"]
+    ev = evaluate_scenario(scenario, 11, hills, restored_biases=True)
+    E, truth, scored = ev.estimates, ev.truth, ev.mask
+    err_deg = np.degrees(E[:, L.E_ROLL] - truth["roll"])
+    assert math.sqrt(float(np.mean(err_deg[scored] ** 2))) < 0.16  # 0.117 / 0.138 deg
+    cornering_valid = scored & ((E[:, L.E_VALID].astype(int) & L.V_CORNERING) != 0)
+    stiffness_err = 100.0 * np.abs(E[:, L.E_C_ALPHA_FRONT] / truth["c_alpha_front"] - 1.0)
+    assert not cornering_valid.any() or stiffness_err[cornering_valid].max() < 20.0  # 15.6 % on slalom_30
 
 
 @pytest.mark.slow

@@ -229,6 +229,7 @@ PITCH_RATE_TIME = 5.0  # s, its correlation time
 # whose grade changes")
 PITCH_RATE_SEEN_TIME = 1.0  # s
 PITCH_RATE_LEVEL = 0.003  # rad/s
+GRADE_KNOWN_BIAS_SD = 0.0035  # rad/s: a pitch gyro's bias this sure starts the grade's rate open
 GRADE_DOUBT_CLOSES = 2.0  # the drive closes as the lateral innovations' running mean nears half the monitor's limit
 GRADE_MIN_SPEED = 3.0  # m/s: below it the vertical accelerometer's u pitch' is too small to tell a pitch rate ...
 GRADE_MAX_ROLL_COS = 0.5  # ... and leaning beyond 60 deg (a fall) its part along the body's z axis
@@ -594,7 +595,10 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     P[X_PSI, X_PSI] = 1.0
     _restart_sideslip(x, P)
     x[X_PITCH_RATE] = 0.0
-    P[X_PITCH_RATE, X_PITCH_RATE] = PITCH_RATE_LEVEL**2  # the grade's rate opens once the sensors see one
+    # with the pitch gyro's bias known (restored from the state file, or learned before a restart) the gyros' pitch
+    # rate is the grade's; unknown, a level road's prior is what lets the bias be learned (docs/estimator.md)
+    known = keep_biases and P[X_BQ, X_BQ] <= GRADE_KNOWN_BIAS_SD**2
+    P[X_PITCH_RATE, X_PITCH_RATE] = PITCH_RATE_SD**2 if known else PITCH_RATE_LEVEL**2
     st[ST_PITCH_LAG] = 0.0
     st[ST_PITCH_RATE_SEEN] = 0.0
     st[ST_PITCH_RATE_FELT] = 0.0

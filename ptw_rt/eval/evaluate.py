@@ -342,9 +342,20 @@ def evaluate_scenario(
     perturb: list[str] | None = None,
     config: Path = DEFAULT_CONFIG,
     design_file: Path | None = None,
+    restored_biases: bool = False,
 ) -> Evaluation:
+    """Simulate and score one ride; `restored_biases`: the estimator starts from the ride's own IMU biases, as the
+    daemon does from a state file (`ride_biases`)."""
     ride = simulate(scenario, seed=seed, vehicle=config, perturbation=parse_perturbations(perturb or []))
-    return evaluate_ride(ride, config, design_file)
+    biases = ride_biases(ride) if restored_biases else None
+    return evaluate_ride(ride, config, design_file, initial_sensor_biases=biases)
+
+
+def ride_biases(ride: Ride) -> tuple[float, float, float, float]:
+    """(b_p, b_q, b_r [rad/s], b_ay [m/s^2]): the simulated IMU's own biases, what a state file written by an
+    earlier ride on this IMU keeps (`Estimator.learned_sensor_biases`)."""
+    gyro, accel = ride.sensor_meta["gyro_bias"], ride.sensor_meta["accel_bias"]
+    return float(gyro[0]), float(gyro[1]), float(gyro[2]), float(accel[1])
 
 
 def _targets(result: dict) -> dict:
@@ -398,8 +409,8 @@ def _table(results: list[dict]) -> str:
 
 
 def _one(job: tuple) -> dict:
-    scenario, seed, perturb, config, design_file = job
-    result = evaluate_scenario(scenario, seed, perturb, config, design_file).result
+    scenario, seed, perturb, config, design_file, restored_biases = job
+    result = evaluate_scenario(scenario, seed, perturb, config, design_file, restored_biases).result
     result["targets"] = _targets(result)
     return result
 
@@ -478,6 +489,10 @@ def run_evaluate(args) -> int:
         return run_random_command(args)
     if getattr(args, "seeds", None) is not None and not getattr(args, "matrix", False):
         raise UserFacingError("--seeds goes with --matrix (one ride or table on one noise seed: --seed S)")
+    if getattr(args, "restored_biases", False) and getattr(args, "matrix", False):
+        raise UserFacingError(
+            "--restored-biases does not go with --matrix: issue #12's matrix starts from no persisted state"
+        )
     if getattr(args, "matrix", False):
         from ptw_rt.eval.matrix import run_matrix_command
 
@@ -487,13 +502,14 @@ def run_evaluate(args) -> int:
     if args.scenario:
         get_scenario(args.scenario)  # an unknown name: one line
     names = list(SCENARIOS) if args.all else [args.scenario]
-    jobs = [(n, args.seed, args.perturb, args.config, args.design_file) for n in names]
+    restored = getattr(args, "restored_biases", False)
+    jobs = [(n, args.seed, args.perturb, args.config, args.design_file, restored) for n in names]
     if getattr(args, "markdown", False):
         if not args.all:
             raise UserFacingError("--markdown needs --all")
         results = _run_all(jobs)
         robustness = [
-            (title, _run_all([(n, args.seed, pert, args.config, args.design_file) for n in names]))
+            (title, _run_all([(n, args.seed, pert, args.config, args.design_file, restored) for n in names]))
             for title, pert in ROBUSTNESS
         ]
         print(_markdown(results, robustness))

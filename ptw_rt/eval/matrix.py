@@ -377,14 +377,17 @@ def check_targets(cells: Sequence[dict], wrong_start: dict | None = None) -> dic
 
 
 def run_cell(job: tuple) -> dict:
-    """One matrix cell: (scenario, variant label, perturbations, seed, config, design file) -> cell dict."""
-    from ptw_rt.eval.evaluate import evaluate_ride
+    """One matrix cell: (scenario, variant label, perturbations, seed, config, design file[, restored biases]) ->
+    cell dict; with restored biases the estimator starts from the ride's own IMU biases (a daemon's state file)."""
+    from ptw_rt.eval.evaluate import evaluate_ride, ride_biases
     from ptw_rt.sim.ride import parse_perturbations, simulate
 
-    scenario, variant, perturb, seed, config, design_file = job
+    scenario, variant, perturb, seed, config, design_file, *restored = job
     t0 = time.perf_counter()
     ride = simulate(scenario, seed=seed, vehicle=config, perturbation=parse_perturbations(list(perturb)))
-    evaluation = evaluate_ride(ride, config, design_file)
+    evaluation = evaluate_ride(
+        ride, config, design_file, initial_sensor_biases=ride_biases(ride) if restored and restored[0] else None
+    )
     cell = {
         "scenario": scenario,
         "variant": variant,

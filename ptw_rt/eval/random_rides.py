@@ -104,6 +104,8 @@ def reproduce_command(ride: dict) -> str:
     for flag in ("config", "design_file"):  # a ride on another file replays only on it
         if ride.get(flag) is not None:
             args += ["--" + flag.replace("_", "-"), str(ride[flag])]
+    if ride.get("restored_biases"):
+        args.append("--restored-biases")
     return shlex.join(args)
 
 
@@ -130,9 +132,11 @@ def _summary_of_cell(cell: dict, seed: int) -> dict:
 
 
 def _ride_job(job: tuple) -> dict:
-    scenario, perturb, seed, config, design_file = job
-    cell = run_cell((scenario, "random", perturb, seed, config, design_file))
+    scenario, perturb, seed, config, design_file, restored_biases = job
+    cell = run_cell((scenario, "random", perturb, seed, config, design_file, restored_biases))
     ride = _summary_of_cell(cell, seed)
+    if restored_biases:
+        ride["restored_biases"] = True
     if Path(config) != DEFAULT_CONFIG:
         ride["config"] = str(config)
     if design_file is not None:
@@ -232,11 +236,12 @@ def run_random(
     progress: bool = True,
     routes: bool = False,
     hills: bool = False,
+    restored_biases: bool = False,
 ) -> dict:
     jobs = []
     for i in range(count):
         scenario, perturb, seed = draw_ride(generator_seed, i, routes, hills)
-        jobs.append((scenario, perturb, seed, config, design_file))
+        jobs.append((scenario, perturb, seed, config, design_file, restored_biases))
     bar = Progress(len(jobs), label="random rides") if progress else None
     t0 = time.perf_counter()
     rides = map_in_processes(_ride_job, jobs, workers, bar, lambda j: f"{j[0]} {j[2]}")
@@ -246,6 +251,7 @@ def run_random(
         "generator_seed": generator_seed,
         "routes": routes,
         "hills": hills,
+        "restored_biases": restored_biases,
         "summary": summarise(rides),
         "rides_detail": rides,
         "wall_s": round(time.perf_counter() - t0, 1),
@@ -263,7 +269,8 @@ def summary_text(result: dict) -> str:
 
     lines = [
         f"{n} random rides (set {result['generator_seed']}{', random routes' if result.get('routes') else ''}"
-        f"{', hilly roads' if result.get('hills') else ''}) on"
+        f"{', hilly roads' if result.get('hills') else ''}"
+        f"{', biases restored as from a state file' if result.get('restored_biases') else ''}) on"
         f" {result['workers']} processes in {result['wall_s']} s",
         f"roll: <= the peer on {roll['le_peer']} of {roll['scored']}, <= {ROLL_MAX_DEG:g} deg on {roll['le_1deg']};"
         f" largest RMSE {roll['largest_rmse_deg']} deg",
@@ -340,6 +347,7 @@ def run_random_command(args) -> int:
         workers=getattr(args, "jobs", None),
         routes=getattr(args, "routes", False),
         hills=getattr(args, "hills", False),
+        restored_biases=getattr(args, "restored_biases", False),
     )
     emit(result, args.json, summary_text(result) if not args.json else "")
     return 0
