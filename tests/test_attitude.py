@@ -191,7 +191,7 @@ def test_restart_keeps_biases():
     st = att.new_state()
     o = np.zeros(att.OUT_SIZE)
     att.attitude_step(st, o, prm, 0.0, 0.0, 0.0, 0.0, -G, 0.0, 0.1, True, True, 0.0, False, False)
-    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, 1e-3, 0.02, 0.05)
+    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, math.nan, math.nan, 1e-3, 0.02, 0.05)
     att.restart(st)
     att.attitude_step(st, o, prm, 0.0, 0.0, 0.0, 0.0, -G, 0.0, 0.1, True, True, 0.0, False, False)
     assert st[att.ST_INIT] == 1.0
@@ -206,7 +206,7 @@ def test_biases_restored_before_the_first_sample_leave_the_states_not_restored_a
     settings = load_settings(DEFAULT_CONFIG)
     prm = att.attitude_params(DT, G, 0.5, 0.0, settings.estimator.attitude, 0.1)
     st = att.new_state()
-    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, 1e-3, 0.02, 0.05)
+    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, math.nan, math.nan, 1e-3, 0.02, 0.05)
     o = np.zeros(att.OUT_SIZE)
     att.attitude_step(st, o, prm, 0.0, 0.0, 0.0, 0.0, -G, 0.0, 0.1, True, True, 0.0, False, False)
     P = st[att.ST_P : att.ST_P + att.N_X * att.N_X].reshape((att.N_X, att.N_X))
@@ -215,7 +215,7 @@ def test_biases_restored_before_the_first_sample_leave_the_states_not_restored_a
     assert P[att.X_BAZ, att.X_BAZ] == pytest.approx(0.05**2, rel=0.01)
     assert st[att.ST_X + att.X_BQ] == pytest.approx(0.002, abs=1e-6)
     P[att.X_PITCH, att.X_PITCH] = 1e-6  # as if learned
-    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, 1e-3, 0.02, 0.05)
+    att.set_biases(st, 0.001, 0.002, 0.003, 0.04, math.nan, math.nan, 1e-3, 0.02, 0.05)
     assert P[att.X_PITCH, att.X_PITCH] == 1e-6
 
 

@@ -816,19 +816,22 @@ def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
     state = tmp_path / "state.json"
     first = _daemon(tmp_path, channel=_channel(), state_file=str(state))
     learned = first.runner.estimator.design.ad_theta_nominal * 0.9
-    biases = (0.004, -0.002, 0.003, -0.05)
+    biases, accel = (0.004, -0.002, 0.003, -0.05), (0.08, -0.06)
     first.runner.estimator.learned_sensor_biases = lambda: biases  # what a ride would have taught it
+    first.runner.estimator.learned_accel_biases = lambda: accel
 
     first.on_cycle = _learns(first, learned)
     _run(first, 0.5)
     saved, reason = load_state(state, first.settings.config_hash)
     assert saved is not None, reason
     assert saved.sensor_biases == pytest.approx(biases)
+    assert saved.accel_biases == pytest.approx(accel)
 
     second = _daemon(tmp_path, channel=_channel(), state_file=str(state))
     assert second.state_note.startswith("restored learned tyre stiffness and sensor biases")
     x = second.runner.estimator.states["attitude"][att.ST_X : att.ST_X + att.N_X]
     assert (x[att.X_BP], x[att.X_BQ], x[att.X_BR], x[att.X_BAY]) == pytest.approx(biases)
+    assert (x[att.X_BAX], x[att.X_BAZ]) == pytest.approx(accel)
 
 
 def test_a_save_while_the_biases_are_doubted_keeps_the_last_good_ones(tmp_path):

@@ -194,6 +194,28 @@ def test_sensor_biases_round_trip_and_are_optional(tmp_path):
     assert reason == "ok" and state.sensor_biases is None
 
 
+def test_accel_biases_round_trip_are_optional_and_bounded(tmp_path):
+    """b_ax and b_az (new 2026-12-06) are a group of their own: a file with the four sensor biases and without them
+    (written before) still loads; a bad one refuses the whole file."""
+    from ptw_rt.io.state_file import sensor_bias_bounds
+
+    path = tmp_path / "state.json"
+    bounds = sensor_bias_bounds(0.1, 0.5)
+    biases, accel = (0.004, -0.002, 0.0031, -0.05), (0.08, -0.06)
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h", sensor_biases=biases, accel_biases=accel)
+    state, reason = load_state(path, "h", bounds)
+    assert reason == "ok" and state.accel_biases == pytest.approx(accel)
+    assert state.sensor_biases == pytest.approx(biases)
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h", sensor_biases=biases)
+    state, reason = load_state(path, "h", bounds)
+    assert reason == "ok" and state.accel_biases is None and state.sensor_biases == pytest.approx(biases)
+    save_state(path, [1.0, 2.0, 3.0, 4.0], "h", sensor_biases=biases, accel_biases=(0.9, 0.0))  # beyond 0.5
+    state, reason = load_state(path, "h", bounds)
+    assert state is None and "longitudinal_accel" in reason
+    with pytest.raises(ValueError):
+        save_state(path, [1.0, 2.0, 3.0, 4.0], "h", accel_biases=(float("nan"), 0.0))
+
+
 @pytest.mark.parametrize("bad", [0.5, "x", None, float("inf")])
 def test_a_bad_sensor_bias_refuses_the_whole_file(tmp_path, bad):
     from ptw_rt.io.state_file import sensor_bias_bounds

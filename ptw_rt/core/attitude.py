@@ -627,12 +627,22 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
 
 @njit(cache=True)
 def set_biases(
-    st: np.ndarray, bp: float, bq: float, br: float, bay: float, sd_gyro: float, sd_accel: float, sd_accel_prior: float
+    st: np.ndarray,
+    bp: float,
+    bq: float,
+    br: float,
+    bay: float,
+    bax: float,
+    baz: float,
+    sd_gyro: float,
+    sd_accel: float,
+    sd_accel_prior: float,
 ) -> None:
-    """Start from biases known from an earlier run (the state file), with their uncertainty. What the file does not
-    keep (the pitch, the longitudinal and vertical accelerometers' biases) starts from its prior (sd_accel_prior for
-    the two biases) if the filter has not run yet: the restart that follows keeps every slow state as it is, and
-    a state left at zero with no variance would never be learned (a slope's pitch read as level all ride)."""
+    """Start from biases known from an earlier run (the state file), with their uncertainty; b_ax and b_az NaN: not
+    kept (a file written before they were). What is not kept (the pitch always, b_ax and b_az if NaN) starts from
+    its prior (sd_accel_prior for the two biases) if the filter has not run yet: the restart that follows keeps
+    every slow state as it is, and a state left at zero with no variance would never be learned (a slope's pitch
+    read as level all ride)."""
     x = st[ST_X : ST_X + N_X]
     P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
     first = st[ST_INIT] == 0.0
@@ -645,9 +655,19 @@ def set_biases(
     P[X_BP, X_BP] = P[X_BQ, X_BQ] = P[X_BR, X_BR] = sd_gyro * sd_gyro
     P[X_BAY, X_BAY] = sd_accel * sd_accel
     if first:
-        x[X_PITCH] = x[X_BAX] = x[X_BAZ] = 0.0
+        x[X_PITCH] = 0.0
         P[X_PITCH, X_PITCH] = INITIAL_PITCH_SD**2
-        P[X_BAX, X_BAX] = P[X_BAZ, X_BAZ] = sd_accel_prior * sd_accel_prior
+    for i, kept in ((X_BAX, bax), (X_BAZ, baz)):
+        if math.isfinite(kept):
+            if not first:
+                for j in range(N_X):
+                    P[i, j] = 0.0
+                    P[j, i] = 0.0
+            x[i] = kept
+            P[i, i] = sd_accel * sd_accel
+        elif first:
+            x[i] = 0.0
+            P[i, i] = sd_accel_prior * sd_accel_prior
     st[ST_INIT] = 2.0  # roll, heading and sideslip start from the next sample's data, these biases kept
 
 

@@ -326,17 +326,33 @@ class Estimator:
             return None
         return float(out[att.OUT_BP]), float(out[att.OUT_BQ]), float(out[att.OUT_BR]), float(out[att.OUT_BAY])
 
-    def restore_sensor_biases(self, values) -> None:
+    def learned_accel_biases(self) -> tuple[float, float] | None:
+        """(b_ax, b_az [m/s^2]) the attitude filter has learned, under the same conditions as
+        `learned_sensor_biases`: what the state file may keep beside them (the IMU's, like the others; the pitch is
+        the road's and the mount's, and is not kept)."""
+        if self.learned_sensor_biases() is None:
+            return None
+        x = self.states["attitude"][att.ST_X : att.ST_X + att.N_X]
+        return float(x[att.X_BAX]), float(x[att.X_BAZ])
+
+    def restore_sensor_biases(self, values, accel_biases=None) -> None:
         """Start the attitude filter from sensor biases learned on an earlier ride (the state file), with
         RESTORED_BIAS_SHARE of the configured initial uncertainty: a bias drifts between rides (temperature),
-        so the ride confirms or corrects it."""
+        so the ride confirms or corrects it. `accel_biases` = (b_ax, b_az), if the file kept them (else their
+        prior)."""
         values = np.asarray(values, dtype=float)
         if values.shape != (4,) or not np.all(np.isfinite(values)):
             raise ValueError("expected four finite sensor biases")
+        accel = np.full(2, np.nan)  # not kept: their prior
+        if accel_biases is not None:
+            accel = np.asarray(accel_biases, dtype=float)
+            if accel.shape != (2,) or not np.all(np.isfinite(accel)):
+                raise ValueError("expected two finite accelerometer biases")
         tuning = self.settings.estimator.attitude
         att.set_biases(
             self.states["attitude"],
             *values,
+            *accel,
             RESTORED_BIAS_SHARE * tuning.initial_gyro_bias_sd,
             RESTORED_BIAS_SHARE * tuning.initial_accel_bias_sd,
             tuning.initial_accel_bias_sd,

@@ -152,15 +152,15 @@ def evaluate_ride(
     config: Path = DEFAULT_CONFIG,
     design_file: Path | None = None,
     initial_stiffness_scale: tuple[float, float] | None = None,
-    initial_sensor_biases: tuple[float, float, float, float] | None = None,
+    initial_sensor_biases: tuple[float, ...] | None = None,
 ) -> Evaluation:
     """Score one ride. `initial_stiffness_scale` = (front, rear): the estimator starts from the nominal
     tyres times these factors (a wrong start), if it offers `set_initial_stiffness_scale(front, rear)`;
     `result["initial_stiffness_scale"]` then says whether it was applied. `initial_sensor_biases` = (b_p, b_q, b_r
-    [rad/s], b_ay [m/s^2]): the estimator starts from them as the daemon does from its state file."""
+    [rad/s], b_ay[, b_ax, b_az] [m/s^2]): the estimator starts from them as the daemon does from its state file."""
     runner = shared_runner(config, design_file)  # a matrix's or a random set's worker loads the files once
     if initial_sensor_biases is not None:
-        runner.estimator.restore_sensor_biases(initial_sensor_biases)
+        runner.estimator.restore_sensor_biases(initial_sensor_biases[:4], initial_sensor_biases[4:] or None)
     settings = runner.settings
     applied = None
     if initial_stiffness_scale is not None:
@@ -351,11 +351,11 @@ def evaluate_scenario(
     return evaluate_ride(ride, config, design_file, initial_sensor_biases=biases)
 
 
-def ride_biases(ride: Ride) -> tuple[float, float, float, float]:
-    """(b_p, b_q, b_r [rad/s], b_ay [m/s^2]): the simulated IMU's own biases, what a state file written by an
-    earlier ride on this IMU keeps (`Estimator.learned_sensor_biases`)."""
+def ride_biases(ride: Ride) -> tuple[float, float, float, float, float, float]:
+    """(b_p, b_q, b_r [rad/s], b_ay, b_ax, b_az [m/s^2]): the simulated IMU's own biases, what a state file written
+    by an earlier ride on this IMU keeps (`Estimator.learned_sensor_biases`, `learned_accel_biases`)."""
     gyro, accel = ride.sensor_meta["gyro_bias"], ride.sensor_meta["accel_bias"]
-    return float(gyro[0]), float(gyro[1]), float(gyro[2]), float(accel[1])
+    return (float(gyro[0]), float(gyro[1]), float(gyro[2]), float(accel[1]), float(accel[0]), float(accel[2]))
 
 
 def _targets(result: dict) -> dict:

@@ -23,11 +23,14 @@ File content (format ``ptw-rt-state``, version 1)::
     {"format": "ptw-rt-state", "version": 1, "config_hash": "...", "saved_at": "2024-05-01T12:00:00.000+00:00",
      "stiffness": {"front_cornering": ..., "front_camber": ..., "rear_cornering": ..., "rear_camber": ...},
      "sensor_biases": {"roll_gyro": ..., "pitch_gyro": ..., "yaw_gyro": ..., "lateral_accel": ...},
+     "accel_biases": {"longitudinal_accel": ..., "vertical_accel": ...},
      "extra": {...}}
 
 ``sensor_biases`` (the attitude filter's gyro biases in rad/s and lateral accelerometer bias in m/s^2, bounded by
 ``sensor_bias_bounds``) is optional: files written before it existed still load; when present it is checked like
-every other group and a bad value refuses the whole file. So is ``steer_zero``: the steering encoder's zero error
+every other group and a bad value refuses the whole file. So is ``accel_biases`` (the longitudinal and vertical
+accelerometers' biases in m/s^2, new 2026-12-06: a group of its own, so files with the four sensor biases and
+without these still load; bounded like the lateral one). So is ``steer_zero``: the steering encoder's zero error
 learned riding straight (``shift``, rad, bounded by ``steer_zero_bounds``) and the configured zero count it was
 learned against (``zero_count``: the caller restores the shift only while the configuration still has that zero,
 since a re-fitted encoder is re-zeroed in the file, not by what the last ride learned)::
@@ -99,12 +102,15 @@ class StateField:
 # order of the ``sensor_biases`` sequence: the attitude filter's b_p, b_q, b_r [rad/s] and b_ay [m/s^2]
 SENSOR_BIAS_KEYS = ("roll_gyro", "pitch_gyro", "yaw_gyro", "lateral_accel")
 _SENSOR_BIAS_UNITS = ("rad/s", "rad/s", "rad/s", "m/s^2")
+# order of the ``accel_biases`` sequence: the attitude filter's b_ax and b_az [m/s^2]
+ACCEL_BIAS_KEYS = ("longitudinal_accel", "vertical_accel")
 STATE_FIELDS: tuple[StateField, ...] = (
     tuple(StateField("stiffness", key, "N/rad") for key in STIFFNESS_KEYS)
     + tuple(
         StateField("sensor_biases", key, unit, positive=False, optional=True)
         for key, unit in zip(SENSOR_BIAS_KEYS, _SENSOR_BIAS_UNITS, strict=True)
     )
+    + tuple(StateField("accel_biases", key, "m/s^2", positive=False, optional=True) for key in ACCEL_BIAS_KEYS)
     + (
         StateField("steer_zero", "zero_count", "count", positive=False, optional=True),
         StateField("steer_zero", "shift", "rad", positive=False, optional=True),
@@ -124,9 +130,12 @@ def stiffness_bounds(nominal: Sequence[float], deviation_bound: Sequence[float])
 
 
 def sensor_bias_bounds(max_gyro_bias: float, max_accel_bias: float) -> dict[str, tuple[float, float]]:
-    """Bounds of the persisted sensor biases: +- what the attitude filter may plausibly have learned."""
+    """Bounds of the persisted sensor and accelerometer biases: +- what the attitude filter may plausibly have
+    learned."""
     limits = (max_gyro_bias, max_gyro_bias, max_gyro_bias, max_accel_bias)
-    return {f"sensor_biases.{key}": (-abs(b), abs(b)) for key, b in zip(SENSOR_BIAS_KEYS, limits, strict=True)}
+    bounds = {f"sensor_biases.{key}": (-abs(b), abs(b)) for key, b in zip(SENSOR_BIAS_KEYS, limits, strict=True)}
+    bounds.update({f"accel_biases.{key}": (-abs(max_accel_bias), abs(max_accel_bias)) for key in ACCEL_BIAS_KEYS})
+    return bounds
 
 
 def steer_zero_bounds(max_shift: float, counts_per_rev: float) -> dict[str, tuple[float, float]]:
@@ -145,6 +154,7 @@ class LoadedState:
     extra: dict[str, Any] = field(default_factory=dict)
     values: dict[str, Any] = field(default_factory=dict)  # every STATE_FIELDS value by StateField.name
     sensor_biases: tuple[float, float, float, float] | None = None  # SENSOR_BIAS_KEYS order, if the file has them
+    accel_biases: tuple[float, float] | None = None  # ACCEL_BIAS_KEYS order, if the file has them
     steer_zero: tuple[float, float] | None = None  # (zero_count, shift [rad]), if the file has them
 
 
@@ -202,9 +212,11 @@ def save_state(
     extra: Mapping[str, Any] | None = None,
     sensor_biases: Sequence[float] | None = None,
     steer_zero: tuple[float, float] | None = None,
+    accel_biases: Sequence[float] | None = None,
 ) -> Path:
-    """Atomically write the learned stiffness (C_af, C_gf, C_ar, C_gr in N/rad), and the sensor biases
-    (SENSOR_BIAS_KEYS order) and the steer zero ((zero_count, shift [rad])) if given, to ``path``; returns the path.
+    """Atomically write the learned stiffness (C_af, C_gf, C_ar, C_gr in N/rad), and if given the sensor biases
+    (SENSOR_BIAS_KEYS order), the accelerometer biases (ACCEL_BIAS_KEYS order) and the steer zero ((zero_count,
+    shift [rad])), to ``path``; returns the path.
 
     Creates the parent directory if missing. Raises ``ValueError`` for non-finite or non-positive values
     (nothing is written), ``TypeError`` if ``extra`` is not JSON-serialisable and ``OSError`` if the file
@@ -224,6 +236,11 @@ def save_state(
         if len(biases) != len(SENSOR_BIAS_KEYS) or not all(math.isfinite(b) for b in biases):
             raise ValueError(f"expected {len(SENSOR_BIAS_KEYS)} finite sensor biases, got {sensor_biases!r}")
         doc["sensor_biases"] = dict(zip(SENSOR_BIAS_KEYS, biases, strict=True))
+    if accel_biases is not None:
+        accel = [float(b) for b in accel_biases]
+        if len(accel) != len(ACCEL_BIAS_KEYS) or not all(math.isfinite(b) for b in accel):
+            raise ValueError(f"expected {len(ACCEL_BIAS_KEYS)} finite accelerometer biases, got {accel_biases!r}")
+        doc["accel_biases"] = dict(zip(ACCEL_BIAS_KEYS, accel, strict=True))
     if steer_zero is not None:
         zero = [float(v) for v in steer_zero]
         if len(zero) != 2 or not all(math.isfinite(v) for v in zero):
@@ -376,6 +393,9 @@ def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None)
         values=values,
         sensor_biases=tuple(float(values[f"sensor_biases.{k}"]) for k in SENSOR_BIAS_KEYS)  # type: ignore[arg-type]
         if "sensor_biases" in doc
+        else None,
+        accel_biases=tuple(float(values[f"accel_biases.{k}"]) for k in ACCEL_BIAS_KEYS)  # type: ignore[arg-type]
+        if "accel_biases" in doc
         else None,
         steer_zero=(float(values["steer_zero.zero_count"]), float(values["steer_zero.shift"]))
         if "steer_zero" in doc

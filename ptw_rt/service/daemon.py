@@ -407,6 +407,7 @@ class Daemon:
         # the last sensor biases and steer zero known good (restored, or learned and saved): a save while the
         # attitude filter doubts its biases (an alarm) or before the zero is re-learned keeps them, never drops them
         self._kept_biases: tuple[float, ...] | None = None
+        self._kept_accel_biases: tuple[float, ...] | None = None  # (b_ax, b_az) with them, if known
         self._kept_steer_zero: tuple[float, float] | None = None
         self._warm_up()
         self._restore_state()
@@ -569,7 +570,7 @@ class Daemon:
         try:
             est.restore_stiffness(state.stiffness)
             if state.sensor_biases is not None:
-                est.restore_sensor_biases(state.sensor_biases)
+                est.restore_sensor_biases(state.sensor_biases, state.accel_biases)
             if state.steer_zero is not None:
                 steer_zero = est.restore_steer_zero(*state.steer_zero)
         except ValueError as exc:
@@ -580,6 +581,7 @@ class Daemon:
         if state.sensor_biases is not None:
             what.append("sensor biases")
             self._kept_biases = tuple(state.sensor_biases)
+            self._kept_accel_biases = state.accel_biases
         if steer_zero:
             what.append("steer zero")
             self._kept_steer_zero = tuple(state.steer_zero)
@@ -602,17 +604,26 @@ class Daemon:
             return None  # nothing learned (or restored) yet: keep the previous file
         est = self.runner.estimator
         biases, steer_zero = est.learned_sensor_biases(), est.learned_steer_zero()
-        self._kept_biases = biases = biases if biases is not None else self._kept_biases
+        if biases is not None:
+            self._kept_biases, self._kept_accel_biases = biases, est.learned_accel_biases()
         self._kept_steer_zero = steer_zero = steer_zero if steer_zero is not None else self._kept_steer_zero
+        biases = (self._kept_biases, self._kept_accel_biases)
         return [float(v) for v in self._kept_stiffness], biases, steer_zero
 
     def _save_state(self, values, now: float) -> None:
         path = self.settings.runtime.state_file
         if not path or values is None:
             return
-        stiffness, biases, steer_zero = values
+        stiffness, (biases, accel_biases), steer_zero = values
         try:
-            save_state(path, stiffness, self.settings.config_hash, sensor_biases=biases, steer_zero=steer_zero)
+            save_state(
+                path,
+                stiffness,
+                self.settings.config_hash,
+                sensor_biases=biases,
+                steer_zero=steer_zero,
+                accel_biases=accel_biases if biases is not None else None,
+            )
             self.state_saves += 1
         except (OSError, ValueError, TypeError) as exc:
             self.rate_log.warn("state_save", f"cannot save state to {path}: {exc}", now)
