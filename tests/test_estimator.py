@@ -130,6 +130,10 @@ def test_sensor_biases_learned_at_a_stop_restore_into_a_new_estimator(estimator_
     assert abs(out[lay.E_ROLL] - math.atan(20.0 * 0.05 / 9.81)) < math.radians(2.0)
     with pytest.raises(ValueError):
         fresh.restore_sensor_biases([0.0, float("nan"), 0.0, 0.0])
+    with pytest.raises(ValueError):  # the accelerometers' b_ax and b_az, if given, are two finite values
+        fresh.restore_sensor_biases(learned, [float("nan"), 0.0])
+    with pytest.raises(ValueError):
+        fresh.restore_sensor_biases(learned, [0.0])
 
 
 def test_a_restored_steer_zero_is_used_and_kept(estimator_factory):
