@@ -490,17 +490,21 @@ def _clear_h(H: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")
+def _set_uncorrelated(x: np.ndarray, P: np.ndarray, i: int, value: float, sd: float) -> None:
+    """State i to `value` with standard deviation `sd`, uncorrelated with the rest (a prior, or a value known
+    from elsewhere: a state file, a GPS course)."""
+    for j in range(N_X):
+        P[i, j] = 0.0
+        P[j, i] = 0.0
+    x[i] = value
+    P[i, i] = sd * sd
+
+
+@njit(cache=True, inline="always")
 def _restart_sideslip(x: np.ndarray, P: np.ndarray) -> None:
     """v_y and its derivative back to their prior (zero, a gripping vehicle's), uncorrelated with the rest."""
-    for i in range(N_X):
-        P[X_VY, i] = 0.0
-        P[i, X_VY] = 0.0
-        P[X_AV, i] = 0.0
-        P[i, X_AV] = 0.0
-    x[X_VY] = 0.0
-    x[X_AV] = 0.0
-    P[X_VY, X_VY] = INITIAL_VY_SD**2
-    P[X_AV, X_AV] = INITIAL_AV_SD**2
+    _set_uncorrelated(x, P, X_VY, 0.0, INITIAL_VY_SD)
+    _set_uncorrelated(x, P, X_AV, 0.0, INITIAL_AV_SD)
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -646,28 +650,17 @@ def set_biases(
     x = st[ST_X : ST_X + N_X]
     P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
     first = st[ST_INIT] == 0.0
-    for i in range(X_BP, X_BAZ + 1):  # the slow states: b_p, b_q, b_r, b_ay (restored), the pitch, b_ax, b_az
-        if i <= X_BAY or first:
-            for j in range(N_X):
-                P[i, j] = 0.0
-                P[j, i] = 0.0
-    x[X_BP], x[X_BQ], x[X_BR], x[X_BAY] = bp, bq, br, bay
-    P[X_BP, X_BP] = P[X_BQ, X_BQ] = P[X_BR, X_BR] = sd_gyro * sd_gyro
-    P[X_BAY, X_BAY] = sd_accel * sd_accel
+    _set_uncorrelated(x, P, X_BP, bp, sd_gyro)
+    _set_uncorrelated(x, P, X_BQ, bq, sd_gyro)
+    _set_uncorrelated(x, P, X_BR, br, sd_gyro)
+    _set_uncorrelated(x, P, X_BAY, bay, sd_accel)
     if first:
-        x[X_PITCH] = 0.0
-        P[X_PITCH, X_PITCH] = INITIAL_PITCH_SD**2
+        _set_uncorrelated(x, P, X_PITCH, 0.0, INITIAL_PITCH_SD)
     for i, kept in ((X_BAX, bax), (X_BAZ, baz)):
         if math.isfinite(kept):
-            if not first:
-                for j in range(N_X):
-                    P[i, j] = 0.0
-                    P[j, i] = 0.0
-            x[i] = kept
-            P[i, i] = sd_accel * sd_accel
+            _set_uncorrelated(x, P, i, kept, sd_accel)
         elif first:
-            x[i] = 0.0
-            P[i, i] = sd_accel_prior * sd_accel_prior
+            _set_uncorrelated(x, P, i, 0.0, sd_accel_prior)
     st[ST_INIT] = 2.0  # roll, heading and sideslip start from the next sample's data, these biases kept
 
 
@@ -903,11 +896,7 @@ def attitude_step(
         for k in range(n_lat):
             delayed_psi -= st[ST_PSI_HIST + k]
         if st[ST_PSI_INIT] == 0.0:
-            x[X_PSI] = course - x[X_VY] / u + (x[X_PSI] - delayed_psi)
-            for i in range(N_X):
-                P[X_PSI, i] = 0.0
-                P[i, X_PSI] = 0.0
-            P[X_PSI, X_PSI] = prm[A_R_COURSE] ** 2
+            _set_uncorrelated(x, P, X_PSI, course - x[X_VY] / u + (x[X_PSI] - delayed_psi), prm[A_R_COURSE])
             st[ST_PSI_INIT] = 1.0
             st[ST_COURSE_REJECTED] = 0.0
         else:

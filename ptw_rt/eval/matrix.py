@@ -377,17 +377,13 @@ def check_targets(cells: Sequence[dict], wrong_start: dict | None = None) -> dic
 
 
 def run_cell(job: tuple) -> dict:
-    """One matrix cell: (scenario, variant label, perturbations, seed, config, design file[, restored biases]) ->
+    """One matrix cell: (scenario, variant label, perturbations, seed, config, design file, restored biases) ->
     cell dict; with restored biases the estimator starts from the ride's own IMU biases (a daemon's state file)."""
-    from ptw_rt.eval.evaluate import evaluate_ride, ride_biases
-    from ptw_rt.sim.ride import parse_perturbations, simulate
+    from ptw_rt.eval.evaluate import evaluate_scenario
 
-    scenario, variant, perturb, seed, config, design_file, *restored = job
+    scenario, variant, perturb, seed, config, design_file, restored_biases = job
     t0 = time.perf_counter()
-    ride = simulate(scenario, seed=seed, vehicle=config, perturbation=parse_perturbations(list(perturb)))
-    evaluation = evaluate_ride(
-        ride, config, design_file, initial_sensor_biases=ride_biases(ride) if restored and restored[0] else None
-    )
+    evaluation = evaluate_scenario(scenario, seed, list(perturb), config, design_file, restored_biases)
     cell = {
         "scenario": scenario,
         "variant": variant,
@@ -450,9 +446,10 @@ def run_matrices(
     all_jobs: list[tuple[str, tuple]] = []
     spans = []  # per seed: (first job, cell jobs, wrong-start jobs)
     for k, seed in enumerate(seeds):
-        cells = [(s, v, tuple(p), seed, config, design_file) for v, p in variants for s in names]
+        # issue #12's matrix starts from no persisted state: no restored biases
+        cells = [(s, v, tuple(p), seed, config, design_file, False) for v, p in variants for s in names]
         if k == 0:
-            cells += [(s, v, tuple(p), seed, config, design_file) for v, p in extra_jobs for s in names]
+            cells += [(s, v, tuple(p), seed, config, design_file, False) for v, p in extra_jobs for s in names]
         ws_jobs = [(WRONG_START_SCENARIO, sc, seed, config, design_file) for sc in WRONG_START_SCALES]
         ws_jobs = ws_jobs if with_ws else []
         spans.append((len(all_jobs), len(cells), len(ws_jobs)))

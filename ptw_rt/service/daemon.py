@@ -622,7 +622,7 @@ class Daemon:
                 self.settings.config_hash,
                 sensor_biases=biases,
                 steer_zero=steer_zero,
-                accel_biases=accel_biases if biases is not None else None,
+                accel_biases=accel_biases,
             )
             self.state_saves += 1
         except (OSError, ValueError, TypeError) as exc:
