@@ -402,6 +402,18 @@ CONFIG_SCHEMA = Section(
     },
 )
 DESIGN_SECTIONS = ("vehicle", "estimator")  # what the design file depends on (the config hash)
+# What gives the learned values (tyres, sensor biases, steer zero) their meaning: the design sections but the payload.
+# A rider's or a pillion's mass (``vehicle.added_mass``) changes no tyre and no sensor: a state file learned with
+# one payload is restored with another (the learned tyres are N/rad of the same tyres), where the config hash,
+# which the design needs, differs.
+PAYLOAD_KEY = "added_mass"
+
+
+def learned_state_hash(validated: dict[str, Any]) -> str:
+    """The hash of ``validated``'s design sections, the vehicle's payload left out (``Settings.learned_state_hash``)."""
+    sections = {k: validated[k] for k in DESIGN_SECTIONS}
+    sections["vehicle"] = {k: v for k, v in validated["vehicle"].items() if k != PAYLOAD_KEY}
+    return canonical_hash(sections)
 
 
 @dataclass(frozen=True)
@@ -640,6 +652,7 @@ class Settings:
     config_hash: str
     sensors: SensorSettings
     runtime: RuntimeSettings
+    learned_state_hash: str  # the config hash but for the payload: whose learned state this one may restore
 
 
 def _typed(cls: type, values: dict[str, Any]) -> Any:
@@ -733,6 +746,7 @@ def settings_from_mapping(doc: Any, source: str) -> Settings:
         config_hash=canonical_hash({k: validated[k] for k in DESIGN_SECTIONS}),
         sensors=_sensors(validated["sensors"], source),
         runtime=runtime_from_mapping(validated["runtime"]),
+        learned_state_hash=learned_state_hash(validated),
     )
 
 

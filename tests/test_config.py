@@ -98,6 +98,21 @@ def test_added_mass_is_the_simulators_payload(tmp_path, settings):
     assert load_settings(write(tmp_path, mutated(vehicle__added_mass=DELETE))).vehicle == settings.vehicle
 
 
+def test_a_payload_changes_the_design_but_not_whose_learned_state_is_restored(tmp_path, settings):
+    """`learned_state_hash` (the state file's key beside the config hash) leaves the payload out: a pillion's file
+    needs its own design but restores what the rider's file learned (the same tyres and sensors). Anything else of
+    the vehicle or the tuning changes both, and so does a file that writes the default payload out."""
+    pillion = load_settings(write(tmp_path, mutated(vehicle__added_mass=75)))
+    assert pillion.config_hash != settings.config_hash
+    assert pillion.learned_state_hash == settings.learned_state_hash
+    assert load_settings(write(tmp_path, mutated(vehicle__added_mass=DELETE))).learned_state_hash == (
+        settings.learned_state_hash
+    )
+    for change in ({"vehicle__front_tyre__cornering_stiffness": 25000.0}, {"vehicle__rear_frame__mass": 300.0}):
+        other = load_settings(write(tmp_path, mutated(**change)))
+        assert other.learned_state_hash != settings.learned_state_hash and other.config_hash != settings.config_hash
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="configuration file not found"):
         load_settings(tmp_path / "nope.yaml")

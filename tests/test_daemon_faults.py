@@ -971,3 +971,84 @@ class CapturedWarnings:
 
     def __exit__(self, *exc) -> None:
         self.logger.removeHandler(self.handler)
+
+
+@pytest.fixture(scope="module")
+def pillion_config(tmp_path_factory):
+    """The shipped file with a pillion (`vehicle.added_mass` 75 kg) and its design beside it, as the README's payload
+    setting asks (`ptw-rt design --config`)."""
+    import yaml
+
+    from ptw_rt.design.build import make_design
+
+    config = tmp_path_factory.mktemp("pillion") / "pillion.yaml"
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["vehicle"]["added_mass"] = 75.0
+    config.write_text(yaml.safe_dump(doc))
+    make_design(load_daemon_settings(config, {}))[0].save(config.with_suffix(".design.npz"))
+    return config
+
+
+def _rider_learned(daemon):
+    """Tyres, sensor biases and steer zero as a ride would have taught `daemon`'s estimator (the tyres VALID)."""
+    learned = daemon.runner.estimator.design.ad_theta_nominal * 0.9
+    biases, accel, zero = (0.004, -0.002, 0.003, -0.05), (0.08, -0.06), (512.0, 0.006)
+    daemon.runner.estimator.learned_sensor_biases = lambda: biases
+    daemon.runner.estimator.learned_accel_biases = lambda: accel
+    daemon.runner.estimator.learned_steer_zero = lambda: zero
+    daemon.on_cycle = _learns(daemon, learned)
+    return learned, biases, accel, zero
+
+
+def _assert_starts_from(estimator, learned, biases, accel, zero):
+    from ptw_rt.core import attitude as att
+    from ptw_rt.core import conditioning as cnd
+
+    np.testing.assert_allclose(estimator.learned_stiffness(), learned, rtol=1e-6)
+    x = estimator.states["attitude"][att.ST_X : att.ST_X + att.N_X]
+    assert (x[att.X_BP], x[att.X_BQ], x[att.X_BR], x[att.X_BAY]) == pytest.approx(biases)
+    assert (x[att.X_BAX], x[att.X_BAZ]) == pytest.approx(accel)
+    assert estimator.states["conditioning"][cnd.ST_STEER_ZERO_SHIFT] == pytest.approx(zero[1])
+
+
+def test_a_pillions_file_starts_from_what_the_riders_file_learned(tmp_path, pillion_config):
+    """The payload is set in the file (a pillion's file: its own design). What the rider's file learned, the same
+    tyres and the same sensors, starts it: the state file was refused as another configuration (its config hash),
+    so the learned tyres, biases and steer zero were lost whenever the payload setting changed. Another vehicle's
+    file is still refused (`tests/test_state_file.py`)."""
+    state = tmp_path / "state.json"
+    first = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    learned, biases, accel, zero = _rider_learned(first)
+    _run(first, 0.5)
+
+    overrides = {"state_file": state, "channel": _channel(), "interface": "virtual"}
+    pillion = Daemon(load_daemon_settings(pillion_config, overrides), pillion_config)
+    assert pillion.runner.estimator.settings.vehicle.mass == pytest.approx(first.settings.vehicle.mass + 75.0)
+    assert "sensor biases and steer zero" in pillion.state_note and "another payload" in pillion.state_note
+    _assert_starts_from(pillion.runner.estimator, learned, biases, accel, zero)
+    saved = load_state(state, first.settings.config_hash)[0]
+    assert saved is not None and load_state(state, "another vehicle", learned_state_hash="another vehicle")[0] is None
+
+
+def test_a_reload_to_a_pillions_payload_carries_what_the_ride_learned(tmp_path, pillion_config):
+    """SIGHUP after the payload was set in the file restarts the estimator on the pillion's design: it starts from
+    the tyres last published VALID, the biases and the steer zero (a reload carried the tyres only, and only for
+    the same config hash: the payload's dropped them and every such reload re-learned the biases)."""
+    config = tmp_path / "daemon.yaml"
+    config.write_text(DEFAULT_CONFIG.read_text())
+    (tmp_path / "daemon.design.npz").write_bytes(DEFAULT_DESIGN.read_bytes())
+    overrides = {"interface": "virtual", "channel": _channel(), "state_file": tmp_path / "s.json"}
+    settings = load_daemon_settings(config, overrides)
+    daemon = Daemon(settings, config, overrides=overrides)
+    learned, biases, accel, zero = _rider_learned(daemon)
+    _run(daemon, 0.5)
+
+    config.write_text(pillion_config.read_text())
+    (tmp_path / "daemon.design.npz").write_bytes(pillion_config.with_suffix(".design.npz").read_bytes())
+    daemon._prepare_reload()
+    prepared = daemon._prepared
+    assert prepared.error is None and prepared.runner is not None
+    runner = daemon._apply_reload(prepared, time.monotonic())
+    assert runner.estimator.settings.vehicle.mass == pytest.approx(settings.vehicle.mass + 75.0)
+    _assert_starts_from(runner.estimator, learned, biases, accel, zero)
+    assert daemon._stiffness_kept  # the next save keeps them, under the pillion's key

@@ -144,6 +144,26 @@ def test_mismatched_hash_rejected(tmp_path):
     assert "another configuration" in reason
 
 
+def test_a_file_saved_with_the_learned_state_hash_is_restored_by_another_payload(tmp_path):
+    """A file saved with ``learned_state_hash`` is restored by a configuration whose config hash differs from the
+    saved one but whose learned-state hash is the same (the payload changed), and says so; another learned-state
+    hash, or a file saved without one, is refused as before."""
+    path = tmp_path / "state.json"
+    save_state(path, STIFF, HASH, learned_state_hash="0123456789ab", sensor_biases=(0.001, 0.0, -0.001, 0.02))
+    assert json.loads(path.read_text())["learned_state_hash"] == "0123456789ab"
+    same, reason = load_state(path, HASH, learned_state_hash="0123456789ab")
+    assert same is not None and same.same_config, reason
+    payload, reason = load_state(path, "ffffffffffff", learned_state_hash="0123456789ab")
+    assert payload is not None and not payload.same_config, reason
+    assert payload.stiffness == STIFF and payload.sensor_biases == pytest.approx((0.001, 0.0, -0.001, 0.02))
+    for key in (None, "ba9876543210"):
+        state, reason = load_state(path, "ffffffffffff", learned_state_hash=key)
+        assert state is None and "another configuration" in reason
+    save_state(path, STIFF, HASH)  # a file of before the key
+    state, reason = load_state(path, "ffffffffffff", learned_state_hash="0123456789ab")
+    assert state is None and "another configuration" in reason
+
+
 def _write_doc(path, stiffness):
     doc = {"format": "ptw-rt-state", "version": 1, "config_hash": HASH, "saved_at": "x", "stiffness": stiffness}
     path.write_text(json.dumps(doc))  # json.dumps writes NaN / Infinity tokens, json.loads reads them back

@@ -6,7 +6,8 @@ never a half-written one: ``save_state`` writes a temporary file in the same dir
 fsyncs it, ``os.replace``-s it over the target and fsyncs the directory.
 
 ``load_state`` never raises for bad content: a missing, unreadable, corrupt or foreign file, a file
-written for another configuration (config hash mismatch) or one holding a value outside its bounds gives
+written for another configuration (config hash mismatch; but see ``learned_state_hash`` below) or one holding a
+value outside its bounds gives
 ``(None, reason)`` and the daemon starts from the configured nominal stiffnesses. The file is untrusted
 (``ptw_rt.untrusted``): only a regular file is read (a FIFO at the path never blocks start-up), at most
 ``MAX_STATE_BYTES``, nesting at most ``MAX_STATE_DEPTH`` levels, checked before ``json.loads`` recurses.
@@ -36,6 +37,11 @@ learned against (``zero_count``: the caller restores the shift only while the co
 since a re-fitted encoder is re-zeroed in the file, not by what the last ride learned)::
 
      "steer_zero": {"zero_count": 512.0, "shift": 0.0061}
+
+``learned_state_hash`` (new 2026-12-06, optional) is the configuration's hash but for the vehicle's payload
+(``ptw_rt.settings.learned_state_hash``): a file saved with it is restored by a configuration whose config hash
+differs from the saved one only by ``vehicle.added_mass`` (a pillion's file, or the rider's again after it), since
+a payload changes no tyre and no sensor. A file without it is restored by the same config hash alone, as before.
 """
 
 from __future__ import annotations
@@ -151,6 +157,7 @@ class LoadedState:
     stiffness: tuple[float, float, float, float]
     config_hash: str
     saved_at: str
+    same_config: bool = True  # False: restored through ``learned_state_hash`` (saved with another payload)
     extra: dict[str, Any] = field(default_factory=dict)
     values: dict[str, Any] = field(default_factory=dict)  # every STATE_FIELDS value by StateField.name
     sensor_biases: tuple[float, float, float, float] | None = None  # SENSOR_BIAS_KEYS order, if the file has them
@@ -213,10 +220,12 @@ def save_state(
     sensor_biases: Sequence[float] | None = None,
     steer_zero: tuple[float, float] | None = None,
     accel_biases: Sequence[float] | None = None,
+    learned_state_hash: str | None = None,
 ) -> Path:
     """Atomically write the learned stiffness (C_af, C_gf, C_ar, C_gr in N/rad), and if given the sensor biases
     (SENSOR_BIAS_KEYS order), the accelerometer biases (ACCEL_BIAS_KEYS order) and the steer zero ((zero_count,
-    shift [rad])), to ``path``; returns the path.
+    shift [rad])), to ``path``; returns the path. ``learned_state_hash`` lets a configuration that differs only by
+    its payload restore the file.
 
     Creates the parent directory if missing. Raises ``ValueError`` for non-finite or non-positive values
     (nothing is written), ``TypeError`` if ``extra`` is not JSON-serialisable and ``OSError`` if the file
@@ -228,6 +237,7 @@ def save_state(
         "format": STATE_FORMAT,
         "version": STATE_VERSION,
         "config_hash": str(config_hash),
+        **({} if learned_state_hash is None else {"learned_state_hash": str(learned_state_hash)}),
         "saved_at": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
         "stiffness": dict(zip(STIFFNESS_KEYS, values, strict=True)),
     }
@@ -317,8 +327,11 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None) -> tuple[LoadedState | None, str]:
-    """Read a state file written by ``save_state`` for the configuration ``config_hash``.
+def load_state(
+    path: Path | str, config_hash: str, bounds: Bounds | None = None, learned_state_hash: str | None = None
+) -> tuple[LoadedState | None, str]:
+    """Read a state file written by ``save_state`` for the configuration ``config_hash`` (or, given
+    ``learned_state_hash``, for one that differs from it only by the payload).
 
     Returns ``(LoadedState, "ok")``, or ``(None, reason)`` with a one-line human-readable reason if the
     file is missing, not a regular file, too large or too deeply nested, unreadable, not JSON, of another
@@ -355,7 +368,9 @@ def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None)
     saved_hash = doc.get("config_hash")
     if not isinstance(saved_hash, str):
         return None, f"state file {path} has no config_hash"
-    if saved_hash != config_hash:
+    saved_learned = doc.get("learned_state_hash")
+    same_config = saved_hash == config_hash
+    if not same_config and not (learned_state_hash is not None and saved_learned == learned_state_hash):
         return None, (
             f"state file {path} was saved for another configuration (config hash {excerpt(saved_hash[:12], 16)}, "
             f"current {str(config_hash)[:12]})"
@@ -389,6 +404,7 @@ def load_state(path: Path | str, config_hash: str, bounds: Bounds | None = None)
         stiffness=tuple(float(values[f"stiffness.{k}"]) for k in STIFFNESS_KEYS),  # type: ignore[arg-type]
         config_hash=saved_hash,
         saved_at=saved_at[:40] if isinstance(saved_at, str) else "",
+        same_config=same_config,
         extra=extra if isinstance(extra, dict) else {},
         values=values,
         sensor_biases=tuple(float(values[f"sensor_biases.{k}"]) for k in SENSOR_BIAS_KEYS)  # type: ignore[arg-type]
@@ -426,13 +442,15 @@ def remove_orphan_temp_files(path: Path | str) -> list[Path]:
     return removed
 
 
-def restore_state(path: Path | str, config_hash: str, bounds: Bounds | None = None) -> StateLoad:
+def restore_state(
+    path: Path | str, config_hash: str, bounds: Bounds | None = None, learned_state_hash: str | None = None
+) -> StateLoad:
     """Start-up read of the state file: orphan temp files removed, then ``load_state``.
 
     ``level`` is INFO when the state was restored or there is no file yet, WARNING when a file was there and
     was refused (the reason names why); the daemon then starts from the nominal stiffness.
     """
     removed = tuple(str(p) for p in remove_orphan_temp_files(path))
-    state, reason = load_state(path, config_hash, bounds)
+    state, reason = load_state(path, config_hash, bounds, learned_state_hash)
     quiet = state is not None or reason.startswith("no state file at ")
     return StateLoad(state, reason, logging.INFO if quiet else logging.WARNING, removed)

@@ -65,6 +65,7 @@ from typing import Any
 import can
 import numpy as np
 
+from ptw_rt.core.estimator import Estimator
 from ptw_rt.core.layout import (
     E_C_ALPHA_FRONT,
     E_C_GAMMA_REAR,
@@ -557,7 +558,7 @@ class Daemon:
                 self.runner.estimator.steer_zero_max_shift(), self.settings.sensors.steer_counts_per_rev
             )
         )
-        loaded = restore_state(path, self.settings.config_hash, bounds)
+        loaded = restore_state(path, self.settings.config_hash, bounds, self.settings.learned_state_hash)
         if loaded.removed_temp_files:
             log.info("removed %d orphan temporary state files", len(loaded.removed_temp_files))
         state = loaded.state
@@ -587,6 +588,8 @@ class Daemon:
             self._kept_steer_zero = tuple(state.steer_zero)
         listed = what[0] if len(what) == 1 else f"{', '.join(what[:-1])} and {what[-1]}"
         self.state_note = f"restored learned {listed} from {path} (saved {state.saved_at})"
+        if not state.same_config:
+            self.state_note += "; saved with another payload (vehicle.added_mass): the same tyres and sensors"
         if state.steer_zero is not None and not steer_zero:
             self.state_note += (
                 f"; its steer zero was learned against count {state.steer_zero[0]:g}, the configuration now has "
@@ -623,6 +626,7 @@ class Daemon:
                 sensor_biases=biases,
                 steer_zero=steer_zero,
                 accel_biases=accel_biases,
+                learned_state_hash=self.settings.learned_state_hash,
             )
             self.state_saves += 1
         except (OSError, ValueError, TypeError) as exc:
@@ -674,6 +678,19 @@ class Daemon:
         prepared.seconds = time.perf_counter() - t0
         self._prepared = prepared
 
+    def _carry_learning(self, old: Estimator, new: Estimator) -> None:
+        """A reload that restarts the estimator on the same vehicle (its sensor settings or its payload changed:
+        ``Settings.learned_state_hash``) starts the new one from what a restart would: what the state file would
+        keep now (the tyres last published VALID, the biases and steer zero known good), else the running tyres.
+        Only the tyres were carried before 2026-12-06, and only for the same config hash: a rider's payload set
+        while the daemon ran dropped the tyres, and every such reload re-learned the biases from their prior."""
+        keep = self._stiffness_to_save()
+        new.restore_stiffness(keep[0] if keep is not None else old.learned_stiffness())
+        if self._kept_biases is not None:
+            new.restore_sensor_biases(self._kept_biases, self._kept_accel_biases)
+        if self._kept_steer_zero is not None:
+            new.restore_steer_zero(*self._kept_steer_zero)
+
     def _apply_reload(self, prepared: _Reload, now: float) -> CycleRunner:
         """Between two cycles (the loop's thread): swap in what the reload thread prepared. Returns the runner."""
         self._prepared = None
@@ -701,10 +718,11 @@ class Daemon:
             self._next_reopen = now  # at the next cycle
         old = self.runner
         if runner is not None:
-            if settings.config_hash == self.settings.config_hash:
-                runner.estimator.restore_stiffness(old.estimator.learned_stiffness())
+            if settings.learned_state_hash == self.settings.learned_state_hash:
+                self._carry_learning(old.estimator, runner.estimator)
             else:  # another vehicle or tuning: what the old one learned is not this one's to save
                 self._stiffness_kept = False
+                self._kept_biases = self._kept_accel_biases = self._kept_steer_zero = None
             # the wire goes on: output counters and the 10 Hz phase continue; so do the inputs when they can
             runner.encoder, runner.cycles = old.encoder, old.cycles
             if settings.runtime.stale_after_periods == self.settings.runtime.stale_after_periods:
