@@ -220,8 +220,13 @@ PITCH_DRIFT = 0.001  # rad/sqrt(s)
 # (a 4 deg swing of the grade every 300 m: 0.0015 / m, 0.015 rad/s at 36 km/h). The gyros measure that rate,
 # q cos(roll) - r sin(roll), and a turn on a level road makes none (its axis is vertical), so the pitch rate is a state,
 # a first-order Markov process:
-PITCH_RATE_SD = 0.015  # rad/s, its stationary spread on a hilly road
-PITCH_RATE_TIME = 5.0  # s, its correlation time
+PITCH_RATE_SD = 0.015  # rad/s, its stationary spread on a hilly road ...
+PITCH_RATE_TIME = 5.0  # s, its correlation time ...
+# ... at and below this speed. The rate is the speed times the road's vertical curvature, which keeps over a distance,
+# not a time: faster, the same road's spread grows with u and its correlation time shrinks as 1/u (a 4.5 deg swing
+# every 240 m at 117 km/h turns the chassis at up to 0.067 rad/s, 4.4 spreads of the 36 km/h process, which lagged it
+# and raised the consistency alarm that re-opened the roll: docs/estimator.md, "The grade's rate at speed")
+GRADE_REFERENCE_SPEED = 10.0  # m/s
 # ... but a level road's turns are where the gyros' split of the turn tells the roll (their pitch rate is zero), and a
 # free pitch rate takes part of that: the rate's drive (and its prior) opens only as far as both the gyros' pitch rate
 # and the one the vertical accelerometer implies, each low-passed over PITCH_RATE_SEEN_TIME, show one beyond
@@ -954,8 +959,9 @@ def attitude_step(
     st[ST_PITCH_LAG] += dt * (x[X_PITCH_RATE] - st[ST_PITCH_LAG] / spd.OFFSET_TIME)
     turn_accel = -x[X_VY] * rg1 - prm[A_IMU_FORWARD] * rg1 * rg1
     st[ST_TURN_ACCEL_MEAN] += dt / spd.OFFSET_TIME * (turn_accel - st[ST_TURN_ACCEL_MEAN])
-    pitch_rate_decay = dt / PITCH_RATE_TIME
-    pitch_rate_drive = 2.0 * PITCH_RATE_SD**2 * pitch_rate_decay  # the Markov process's, on a hilly road
+    faster = u / GRADE_REFERENCE_SPEED if u > GRADE_REFERENCE_SPEED else 1.0  # (a NaN speed: the reference's)
+    pitch_rate_decay = dt * faster / PITCH_RATE_TIME
+    pitch_rate_drive = 2.0 * (PITCH_RATE_SD * faster) ** 2 * pitch_rate_decay  # the Markov process's, on a hilly road
     x[X_PITCH_RATE] *= 1.0 - pitch_rate_decay
     # P <- F P F' + Q with F = I + dt A, A sparse: [phi,bp]=-1, [psi,phi]=pitch, [psi,bq]=-s, [psi,br]=-c (the
     # psi row over cos(pitch) and tan(pitch) of it added to the phi row), [phi,pitch] = r_g / cos^2(pitch),
@@ -1009,7 +1015,8 @@ def attitude_step(
     # of the turn's rate times its error, which the grade's rate must not take (closed at half the monitor's limit)
     lateral_sd = _running_mean_sd(min(dt / prm[A_CONSISTENCY_TIME], 1.0))
     lateral_doubt = abs(st[ST_MEAN_LATERAL]) / (lateral_sd * prm[A_CONSISTENCY_LIMIT])
-    opening = seen2 / (seen2 + PITCH_RATE_LEVEL**2) * max(1.0 - GRADE_DOUBT_CLOSES * lateral_doubt, 0.0)
+    level = PITCH_RATE_LEVEL * faster  # a level road's vertical curvature, at this speed
+    opening = seen2 / (seen2 + level * level) * max(1.0 - GRADE_DOUBT_CLOSES * lateral_doubt, 0.0)
     P[X_PITCH_RATE, X_PITCH_RATE] += pitch_rate_drive * opening
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
     lat_ratio = _corner_excess(x[X_PHI], prm) / prm[A_SIDESLIP_ACCEL_REF]
