@@ -1052,3 +1052,31 @@ def test_a_reload_to_a_pillions_payload_carries_what_the_ride_learned(tmp_path, 
     assert runner.estimator.settings.vehicle.mass == pytest.approx(settings.vehicle.mass + 75.0)
     _assert_starts_from(runner.estimator, learned, biases, accel, zero)
     assert daemon._stiffness_kept  # the next save keeps them, under the pillion's key
+
+
+def test_a_reload_that_bounds_the_steer_zero_tighter_carries_the_rest_and_keeps_running(tmp_path):
+    """A reload whose sensors section lets the conditioning learn less of a steer zero than the ride learned
+    (`steer_zero_max_shift`) restarts the estimator: the tyres and biases are carried, the steer zero is not (it is
+    re-learned riding straight, as after a restart), and it is not kept for the next save either, whose file the next
+    start's bounds would refuse whole. The restore's ValueError ended the loop."""
+    import yaml
+
+    config = tmp_path / "daemon.yaml"
+    config.write_text(DEFAULT_CONFIG.read_text())
+    (tmp_path / "daemon.design.npz").write_bytes(DEFAULT_DESIGN.read_bytes())
+    overrides = {"interface": "virtual", "channel": _channel(), "state_file": tmp_path / "s.json"}
+    daemon = Daemon(load_daemon_settings(config, overrides), config, overrides=overrides)
+    learned, biases, accel, zero = _rider_learned(daemon)
+    _run(daemon, 0.5)
+
+    doc = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    doc["sensors"]["steer_zero_max_shift"] = 0.5  # counts: 0.0031 rad, below the 0.006 learned
+    config.write_text(yaml.safe_dump(doc))
+    daemon._prepare_reload()
+    prepared = daemon._prepared
+    assert prepared.error is None and prepared.runner is not None
+    runner = daemon._apply_reload(prepared, time.monotonic())
+    estimator = runner.estimator
+    np.testing.assert_allclose(estimator.learned_stiffness(), learned, rtol=1e-6)
+    assert estimator.learned_steer_zero() is None
+    assert daemon._kept_steer_zero is None and daemon._kept_biases == pytest.approx(biases)

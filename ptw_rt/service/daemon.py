@@ -689,7 +689,13 @@ class Daemon:
         if self._kept_biases is not None:
             new.restore_sensor_biases(self._kept_biases, self._kept_accel_biases)
         if self._kept_steer_zero is not None:
-            new.restore_steer_zero(*self._kept_steer_zero)
+            try:
+                carried = new.restore_steer_zero(*self._kept_steer_zero)
+            except ValueError as exc:  # beyond what the new sensors section lets the conditioning learn
+                log.warning("SIGHUP: the learned steer zero is not carried: %s", exc)
+                carried = False
+            if not carried:  # re-zeroed or bounded anew: re-learned riding straight, as after a restart, and not
+                self._kept_steer_zero = None  # saved (the next start's bounds would refuse the whole file)
 
     def _apply_reload(self, prepared: _Reload, now: float) -> CycleRunner:
         """Between two cycles (the loop's thread): swap in what the reload thread prepared. Returns the runner."""
