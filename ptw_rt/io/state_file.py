@@ -110,6 +110,8 @@ SENSOR_BIAS_KEYS = ("roll_gyro", "pitch_gyro", "yaw_gyro", "lateral_accel")
 _SENSOR_BIAS_UNITS = ("rad/s", "rad/s", "rad/s", "m/s^2")
 # order of the ``accel_biases`` sequence: the attitude filter's b_ax and b_az [m/s^2]
 ACCEL_BIAS_KEYS = ("longitudinal_accel", "vertical_accel")
+# order of the ``steer_zero`` pair: the configured zero count it was learned against, the zero error [rad]
+STEER_ZERO_KEYS = ("zero_count", "shift")
 STATE_FIELDS: tuple[StateField, ...] = (
     tuple(StateField("stiffness", key, "N/rad") for key in STIFFNESS_KEYS)
     + tuple(
@@ -117,9 +119,9 @@ STATE_FIELDS: tuple[StateField, ...] = (
         for key, unit in zip(SENSOR_BIAS_KEYS, _SENSOR_BIAS_UNITS, strict=True)
     )
     + tuple(StateField("accel_biases", key, "m/s^2", positive=False, optional=True) for key in ACCEL_BIAS_KEYS)
-    + (
-        StateField("steer_zero", "zero_count", "count", positive=False, optional=True),
-        StateField("steer_zero", "shift", "rad", positive=False, optional=True),
+    + tuple(
+        StateField("steer_zero", key, unit, positive=False, optional=True)
+        for key, unit in zip(STEER_ZERO_KEYS, ("count", "rad"), strict=True)
     )
 )
 
@@ -212,6 +214,15 @@ def _fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+def _finite_group(values: Sequence[float], keys: tuple[str, ...], expected: str) -> dict[str, float]:
+    """``values`` as the state file's object of ``keys``; ValueError ("expected ...", nothing written) unless they
+    are exactly that many finite numbers."""
+    numbers = [float(v) for v in values]
+    if len(numbers) != len(keys) or not all(math.isfinite(v) for v in numbers):
+        raise ValueError(f"expected {expected}, got {values!r}")
+    return dict(zip(keys, numbers, strict=True))
+
+
 def save_state(
     path: Path | str,
     stiffness: Sequence[float],
@@ -242,20 +253,15 @@ def save_state(
         "stiffness": dict(zip(STIFFNESS_KEYS, values, strict=True)),
     }
     if sensor_biases is not None:
-        biases = [float(b) for b in sensor_biases]
-        if len(biases) != len(SENSOR_BIAS_KEYS) or not all(math.isfinite(b) for b in biases):
-            raise ValueError(f"expected {len(SENSOR_BIAS_KEYS)} finite sensor biases, got {sensor_biases!r}")
-        doc["sensor_biases"] = dict(zip(SENSOR_BIAS_KEYS, biases, strict=True))
+        doc["sensor_biases"] = _finite_group(
+            sensor_biases, SENSOR_BIAS_KEYS, f"{len(SENSOR_BIAS_KEYS)} finite sensor biases"
+        )
     if accel_biases is not None:
-        accel = [float(b) for b in accel_biases]
-        if len(accel) != len(ACCEL_BIAS_KEYS) or not all(math.isfinite(b) for b in accel):
-            raise ValueError(f"expected {len(ACCEL_BIAS_KEYS)} finite accelerometer biases, got {accel_biases!r}")
-        doc["accel_biases"] = dict(zip(ACCEL_BIAS_KEYS, accel, strict=True))
+        doc["accel_biases"] = _finite_group(
+            accel_biases, ACCEL_BIAS_KEYS, f"{len(ACCEL_BIAS_KEYS)} finite accelerometer biases"
+        )
     if steer_zero is not None:
-        zero = [float(v) for v in steer_zero]
-        if len(zero) != 2 or not all(math.isfinite(v) for v in zero):
-            raise ValueError(f"expected a finite (zero_count, shift) steer zero, got {steer_zero!r}")
-        doc["steer_zero"] = {"zero_count": zero[0], "shift": zero[1]}
+        doc["steer_zero"] = _finite_group(steer_zero, STEER_ZERO_KEYS, "a finite (zero_count, shift) steer zero")
     if extra:
         doc["extra"] = dict(extra)
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
