@@ -207,6 +207,19 @@ NU_CLIP = 2.0  # standard deviations: bound of each whitened innovation in the c
 COURSE_REINIT_FIXES = 10
 INITIAL_VY_SD = 0.5  # m/s: a gripping vehicle's sideslip velocity, a priori
 INITIAL_AV_SD = 1.0  # m/s^2: its rate
+# Riding straight, a gripping vehicle does not slide: v_y is zero within a tenth of a m/s (road camber, a crosswind).
+# The filter's sideslip model (v_y' = a_v - v_y / sideslip_time) lets a steady a_v and a v_y of sideslip_time times it
+# hold each other, and the lateral-force measurement reads that a_v as a lateral force: the pair then carries a roll
+# error of a_v / g for as long as nothing else contradicts it (a hard braking in a corner left the roll 0.65 deg off
+# for 30 s on the straight after it, and the tyres learned on it: docs/estimator.md, "The sideslip on a straight").
+# Each cycle of straight riding measures v_y = 0 with a variance such that a second of it says STRAIGHT_SIDESLIP_SD.
+STRAIGHT_SIDESLIP_SD = 0.1  # m/s, over STRAIGHT_SIDESLIP_TIME of straight riding
+STRAIGHT_SIDESLIP_TIME = 1.0  # s
+# straight: a lean, a ground yaw rate and its low-passed rate of change below these (at 50 km/h a yaw rate of 0.03
+# rad/s is a curve of 460 m radius and 0.4 m/s^2 of lateral acceleration: its steady sideslip is a few cm/s)
+STRAIGHT_MAX_ROLL = 0.05  # rad
+STRAIGHT_MAX_YAW_RATE = 0.03  # rad/s
+STRAIGHT_MAX_YAW_ACCEL = 0.05  # rad/s^2
 # The pitch (docs/estimator.md, "A road that is not level"): roads climb and fall by up to ~6 deg (10 %), and an IMU
 # is mounted square to a degree or two. In a turn the vertical the vehicle turns about then has a part along the
 # gyro's roll axis, roll' = p + tan(pitch) r_ground: on a 3 deg slope 0.05 r, the roll off by a degree in town.
@@ -677,6 +690,16 @@ def restart(st: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _riding_straight(phi: float, yaw_rate: float, yaw_accel: float) -> bool:
+    """Lean, ground yaw rate and its low-passed rate of change all small: no steady sideslip to speak of."""
+    return (
+        abs(phi) < STRAIGHT_MAX_ROLL
+        and abs(yaw_rate) < STRAIGHT_MAX_YAW_RATE
+        and abs(yaw_accel) < STRAIGHT_MAX_YAW_ACCEL
+    )
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def _corner_excess(phi: float, prm: np.ndarray) -> float:
     """How much harder than `sideslip_dead_zone` the corner is [m/s^2]: the lateral acceleration g tan(roll) its
     lean balances, bounded at what a tyre can give, less the dead zone (0 below it). From the filter's own roll, a
@@ -893,6 +916,21 @@ def attitude_step(
         _clear_h(H)
         H[X_AV] = 1.0
         _update(st, H, -x[X_AV], 0.01, gate)
+
+    if (
+        rates_ok
+        and rates_trusted
+        and not saturated
+        and u >= prm[A_COURSE_MIN_SPEED]
+        and _riding_straight(x[X_PHI], rg1, st[ST_YAW_ACCEL])
+    ):
+        # no sideslip riding straight (STRAIGHT_SIDESLIP_SD): what breaks a steady a_v / v_y pair holding the roll off.
+        # Gated on what a second of it says, not on one cycle's wide variance: a v_y metres per second off (a slide's)
+        # is not pulled back through its correlations with the roll here (2.4 deg), the course's restart takes it
+        if x[X_VY] ** 2 <= gate * gate * (P[X_VY, X_VY] + STRAIGHT_SIDESLIP_SD**2):
+            _clear_h(H)
+            H[X_VY] = 1.0
+            _update(st, H, -x[X_VY], STRAIGHT_SIDESLIP_SD**2 * STRAIGHT_SIDESLIP_TIME / dt, gate)
 
     # ---- 2. GPS course (describes the vehicle `latency` cycles ago) ----
     n_lat = int(prm[A_LATENCY_CYCLES])
