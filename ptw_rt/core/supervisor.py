@@ -147,6 +147,8 @@ PARAMS = Layout(
     tyre_untested=1,  # s the estimate stays valid after the last cycle that tested it
     tyre_valid_max_change=1,  # nats: the bank's change statistic above this is an inconsistency, like the NIS's
     tyre_test_max_roll=1,  # rad: learning tests the published tyres only below this lean (`tested`)
+    tyre_inner_low=1,  # the bank's lowest and highest hypothesis, half a step inside: an estimate beyond sits on ...
+    tyre_inner_high=1,  # ... the edge, where the data may want tyres the bank does not hold (never VALID)
     plausibility_alpha=1,  # share of each cycle in the torque residual's mean square
     plausibility_hold=1,  # s the alarm is held after the residual is back under its threshold
     plausibility_lag=1,  # s: lag the two torques may have between them (threshold term lag x RMS torque rate)
@@ -184,6 +186,8 @@ PARAMS = Layout(
     P_TYRE_UNTESTED,
     P_TYRE_VALID_MAX_CHANGE,
     P_TYRE_TEST_MAX_ROLL,
+    P_TYRE_INNER_LOW,
+    P_TYRE_INNER_HIGH,
     P_PLAUSIBILITY_ALPHA,
     P_PLAUSIBILITY_HOLD,
     P_PLAUSIBILITY_LAG,
@@ -225,6 +229,7 @@ def build_params(settings, design) -> np.ndarray:
     wheelbase = v.l_f + v.l_r
     com_ahead = v.mfk / v.mass  # the combined centre of mass ahead of the reference point (the rear frame's)
     yaw_inertia = v.mass_matrix_terms()["e44"] - v.mass * com_ahead**2  # about the combined centre of mass
+    half_step = math.sqrt(float(design.tb_scale[1]) / float(design.tb_scale[0]))  # the bank's, geometric
     return PARAMS.vector(
         dt=float(design.sample_time),
         reason_hold=est.reason_hold_time,
@@ -247,6 +252,8 @@ def build_params(settings, design) -> np.ndarray:
         tyre_untested=est.tyre_bank.valid_untested_time,
         tyre_valid_max_change=est.tyre_bank.valid_max_change,
         tyre_test_max_roll=est.tyre_bank.valid_test_max_roll,
+        tyre_inner_low=float(design.tb_scale[0]) * half_step,
+        tyre_inner_high=float(design.tb_scale[-1]) / half_step,
         plausibility_alpha=1.0 - math.exp(-float(design.sample_time) / est.plausibility.window),
         plausibility_hold=est.plausibility.hold,
         plausibility_lag=est.plausibility.lag,
@@ -552,6 +559,10 @@ def supervisor_stage(
         # caught it (random sets 61, 71, 81, 101; docs/estimator.md, "A road that changes where nothing tests")
         and t - st[ST_TYRE_TESTED_AT] <= prm[P_TYRE_UNTESTED]
         and lateral[lat.OUT_TYRE_EVIDENCE] >= prm[P_TYRE_MIN_EVIDENCE]  # what it rests on (lateral stage)
+        # and not on the bank's edge: a posterior collapsed on its highest hypothesis (x1.75) for tyres x1.3 rode
+        # 6 s of deep lean untested and was VALID 35 % off the moment learning resumed, 0.3 s before the new data
+        # moved it (a hilly `sensor_faults` seed 11, tyres x1.3, IMU biases x2: docs/estimator.md, "The bank's edge")
+        and prm[P_TYRE_INNER_LOW] < scale < prm[P_TYRE_INNER_HIGH]
     ):
         valid |= V_CORNERING | V_CAMBER
     out[OUT_MODE] = mode
