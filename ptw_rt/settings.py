@@ -57,12 +57,7 @@ ATTITUDE_SCHEMA = Section(
         "standstill_rate_noise": (Number("rad/s", ge=1e-5, le=1), 0.003),
         "initial_roll_sd": (Number("rad", ge=1e-3, le=1.5), 0.2),
         "initial_gyro_bias_sd": (Number("rad/s", ge=1e-5, le=1), 0.01),
-        # the lateral accelerometer's bias a priori: 0.12 m/s^2 (12 mg), what cheap MEMS accelerometers' offsets
-        # span (10-40 mg). On a straight the bias and the roll are one offset; only corners tell them apart, in the
-        # proportion of their priors. At 0.05 (the simulated IMU's rms, tight for real ones) the roll took what the
-        # bias did not: from nothing, five noise seeds' matrices missed 33 cells, 21 at 0.12 (0.08: 22, 0.1: 21,
-        # 0.2: 24), roll/peer seed 11 0.596 -> 0.330 (docs/estimator.md, "The accelerometer's bias a priori")
-        "initial_accel_bias_sd": (Number("m/s^2", ge=1e-4, le=10), 0.12),
+        "initial_accel_bias_sd": (Number("m/s^2", ge=1e-4, le=10), 0.05),
         "reopen_after_cycles": (Number("", integer=True, gt=0, le=100_000), 50),
         # consistency monitor (docs/estimator.md, "Attitude consistency"): the running means of the whitened
         # lateral-force and rotation-axis innovations, over this time constant, against this many standard
