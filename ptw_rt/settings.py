@@ -57,7 +57,13 @@ ATTITUDE_SCHEMA = Section(
         "standstill_rate_noise": (Number("rad/s", ge=1e-5, le=1), 0.003),
         "initial_roll_sd": (Number("rad", ge=1e-3, le=1.5), 0.2),
         "initial_gyro_bias_sd": (Number("rad/s", ge=1e-5, le=1), 0.01),
+        # the accelerometers' biases a priori while the road's grade has not been seen level: a grade that changes from
+        # the start is one the biases can take (b_az its u pitch', b_ay the roll its pitch error drifts), so tight
         "initial_accel_bias_sd": (Number("m/s^2", ge=1e-4, le=10), 0.05),
+        # ... and what cheap MEMS accelerometers' offsets span (10-40 mg), applied as if from the start once the road
+        # has been level for a while (docs/estimator.md, "The accelerometer's bias a priori, once the road is level");
+        # not above initial_accel_bias_sd: never widened
+        "level_road_accel_bias_sd": (Number("m/s^2", ge=1e-4, le=10), 0.12),
         "reopen_after_cycles": (Number("", integer=True, gt=0, le=100_000), 50),
         # consistency monitor (docs/estimator.md, "Attitude consistency"): the running means of the whitened
         # lateral-force and rotation-axis innovations, over this time constant, against this many standard
@@ -524,6 +530,7 @@ class AttitudeTuning:
     initial_roll_sd: float
     initial_gyro_bias_sd: float
     initial_accel_bias_sd: float
+    level_road_accel_bias_sd: float
     reopen_after_cycles: int
     consistency_time: float
     consistency_limit: float
