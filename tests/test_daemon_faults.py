@@ -859,6 +859,38 @@ def test_a_save_while_the_biases_are_doubted_keeps_the_last_good_ones(tmp_path):
     assert saved.steer_zero == pytest.approx(zero)
 
 
+def test_a_learned_bias_a_start_would_refuse_is_not_saved_and_the_wide_prior_sets_the_bound(tmp_path):
+    """A start refuses a state file whose biases are beyond MAX_BIAS_SHARES of their prior, the tyres with them. The
+    accelerometers' bound follows their wider prior (`level_road_accel_bias_sd`): 0.8 m/s^2 is taken (beyond 10 x
+    the tight 0.05). A learned bias beyond even that is not saved: the file keeps the last good ones, so the next
+    start still takes the tyres (before, the save wrote it and the next start refused the whole file)."""
+    state = tmp_path / "state.json"
+    first = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    tuning = first.settings.estimator.attitude
+    assert 0.8 > daemon_mod.MAX_BIAS_SHARES * tuning.initial_accel_bias_sd
+    learned = first.runner.estimator.design.ad_theta_nominal * 0.9
+    biases, accel = (0.004, -0.002, 0.003, 0.8), (0.08, -0.06)
+    first.runner.estimator.learned_sensor_biases = lambda: biases
+    first.runner.estimator.learned_accel_biases = lambda: accel
+    first.on_cycle = _learns(first, learned)
+    _run(first, 0.5)
+
+    second = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    assert second.state_note.startswith("restored learned tyre stiffness and sensor biases"), second.state_note
+    too_far = 1.01 * daemon_mod.MAX_BIAS_SHARES * tuning.level_road_accel_bias_sd
+    second.runner.estimator.learned_sensor_biases = lambda: (0.004, -0.002, 0.003, too_far)
+    second.on_cycle = _learns(second, learned * 1.1)
+    _run(second, 0.5)
+    saved, reason = load_state(state, second.settings.config_hash)
+    assert saved is not None, reason
+    np.testing.assert_allclose(saved.stiffness, learned * 1.1, rtol=1e-9)  # the save did happen
+    assert saved.sensor_biases == pytest.approx(biases)  # the last good ones
+
+    third = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    assert third.state_note.startswith("restored learned tyre stiffness and sensor biases"), third.state_note
+    np.testing.assert_allclose(third.runner.estimator.learned_stiffness(), learned * 1.1, rtol=1e-9)
+
+
 def test_restart_keeps_the_learned_steer_zero_unless_the_encoder_was_re_zeroed(tmp_path):
     """The steer zero learned riding straight is saved with the tyres and the next boot starts from it; a file
     learned against another configured zero count (the encoder re-fitted, its new zero written in the file)

@@ -112,7 +112,8 @@ SEND_TIMEOUT_S = 0.005  # one bus.send may wait this long for room in the transm
 SEND_QUEUE_FRAMES = 64  # ~13 cycles of output: beyond, the oldest frames are dropped (stale estimates are useless)
 OVERRUN_WINDOW_S = 1.0  # the overrun rule: DEGRADED while more than OVERRUN_DEGRADED_LIMIT cycles were missed
 OVERRUN_DEGRADED_LIMIT = 2  # within the last OVERRUN_WINDOW_S (docs/daemon.md, "Overruns")
-# a persisted sensor bias beyond this many times its configured initial uncertainty is not one the filter learned
+# a persisted sensor bias beyond this many times its configured uncertainty a priori (the accelerometers': the wider,
+# the level road's) is not one the filter learned
 MAX_BIAS_SHARES = 10.0
 _BITRATE_INTERFACES = frozenset({"pcan", "kvaser", "ixxat", "vector", "slcan", "gs_usb", "nican", "canalystii"})
 _RX_QUEUE_MAX = 20000
@@ -548,12 +549,9 @@ class Daemon:
         if not path:
             return
         design = self.runner.estimator.design
-        tuning = self.settings.estimator.attitude
         bounds = (
             stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound)
-            | sensor_bias_bounds(
-                MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * tuning.initial_accel_bias_sd
-            )
+            | sensor_bias_bounds(*self._bias_limits())
             | steer_zero_bounds(
                 self.runner.estimator.steer_zero_max_shift(), self.settings.sensors.steer_counts_per_rev
             )
@@ -597,6 +595,20 @@ class Daemon:
             )
         log.info(self.state_note)
 
+    def _bias_limits(self) -> tuple[float, float]:
+        """(gyro [rad/s], accelerometer [m/s^2]): the largest sensor bias a start takes from the state file."""
+        tuning = self.settings.estimator.attitude
+        accel_prior = max(tuning.initial_accel_bias_sd, tuning.level_road_accel_bias_sd)
+        return MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * accel_prior
+
+    def _within_bias_limits(self, biases, accel_biases) -> bool:
+        """Whether a start would take these learned biases: beyond, a save that kept them wrote a file the next
+        start refuses whole, the tyres with them."""
+        gyro, accel = self._bias_limits()
+        limits = (gyro, gyro, gyro, accel) + ((accel, accel) if accel_biases is not None else ())
+        values = tuple(biases) + (tuple(accel_biases) if accel_biases is not None else ())
+        return all(abs(v) <= lim for v, lim in zip(values, limits, strict=True))
+
     def _stiffness_to_save(self):
         """(stiffness, sensor biases or None, steer zero or None) worth keeping, or None: the file is written only
         once the tyres are learned (VALID), never with the prior as if it had been learned: the stiffness last
@@ -607,8 +619,9 @@ class Daemon:
             return None  # nothing learned (or restored) yet: keep the previous file
         est = self.runner.estimator
         biases, steer_zero = est.learned_sensor_biases(), est.learned_steer_zero()
-        if biases is not None:
-            self._kept_biases, self._kept_accel_biases = biases, est.learned_accel_biases()
+        accel_biases = est.learned_accel_biases() if biases is not None else None
+        if biases is not None and self._within_bias_limits(biases, accel_biases):  # else the last known good ones
+            self._kept_biases, self._kept_accel_biases = biases, accel_biases
         self._kept_steer_zero = steer_zero = steer_zero if steer_zero is not None else self._kept_steer_zero
         biases = (self._kept_biases, self._kept_accel_biases)
         return [float(v) for v in self._kept_stiffness], biases, steer_zero
