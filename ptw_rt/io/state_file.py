@@ -69,6 +69,7 @@ __all__ = [
     "LoadedState",
     "StateField",
     "StateLoad",
+    "group_within_bounds",
     "load_state",
     "remove_orphan_temp_files",
     "restore_state",
@@ -318,6 +319,15 @@ def _check_value(spec: StateField, value: Any, bounds: Bounds | None) -> str | N
         if not lo - slack <= v <= hi + slack:
             return f"{v:.6g} {spec.unit} outside the learnable range [{lo:.6g}, {hi:.6g}]"
     return None
+
+
+def group_within_bounds(group: str, values: Sequence[float], bounds: Bounds) -> bool:
+    """Whether load_state would take ``values`` (the keys of ``group`` in order) under ``bounds``: a save that wrote a
+    value it would not take wrote a file the next start refuses whole."""
+    specs = [spec for spec in STATE_FIELDS if spec.group == group]
+    return len(values) == len(specs) and all(
+        _check_value(spec, value, bounds) is None for spec, value in zip(specs, values, strict=True)
+    )
 
 
 class _DuplicateKeyError(Exception):

@@ -84,6 +84,7 @@ from ptw_rt.errors import EXIT_UNAVAILABLE, UserFacingError
 from ptw_rt.io.dbc import DbcError
 from ptw_rt.io.nmea import NmeaParser, SerialGnssReader
 from ptw_rt.io.state_file import (
+    group_within_bounds,
     restore_state,
     save_state,
     sensor_bias_bounds,
@@ -551,7 +552,7 @@ class Daemon:
         design = self.runner.estimator.design
         bounds = (
             stiffness_bounds(design.ad_theta_nominal, design.ad_theta_bound)
-            | sensor_bias_bounds(*self._bias_limits())
+            | self._bias_bounds()
             | steer_zero_bounds(
                 self.runner.estimator.steer_zero_max_shift(), self.settings.sensors.steer_counts_per_rev
             )
@@ -595,19 +596,11 @@ class Daemon:
             )
         log.info(self.state_note)
 
-    def _bias_limits(self) -> tuple[float, float]:
-        """(gyro [rad/s], accelerometer [m/s^2]): the largest sensor bias a start takes from the state file."""
+    def _bias_bounds(self):
+        """The state file's bounds of the sensor biases: the largest a start takes from it."""
         tuning = self.settings.estimator.attitude
         accel_prior = max(tuning.initial_accel_bias_sd, tuning.level_road_accel_bias_sd)
-        return MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * accel_prior
-
-    def _within_bias_limits(self, biases, accel_biases) -> bool:
-        """Whether a start would take these learned biases: beyond, a save that kept them wrote a file the next
-        start refuses whole, the tyres with them."""
-        gyro, accel = self._bias_limits()
-        limits = (gyro, gyro, gyro, accel) + ((accel, accel) if accel_biases is not None else ())
-        values = tuple(biases) + (tuple(accel_biases) if accel_biases is not None else ())
-        return all(abs(v) <= lim for v, lim in zip(values, limits, strict=True))
+        return sensor_bias_bounds(MAX_BIAS_SHARES * tuning.initial_gyro_bias_sd, MAX_BIAS_SHARES * accel_prior)
 
     def _stiffness_to_save(self):
         """(stiffness, sensor biases or None, steer zero or None) worth keeping, or None: the file is written only
@@ -620,7 +613,12 @@ class Daemon:
         est = self.runner.estimator
         biases, steer_zero = est.learned_sensor_biases(), est.learned_steer_zero()
         accel_biases = est.learned_accel_biases() if biases is not None else None
-        if biases is not None and self._within_bias_limits(biases, accel_biases):  # else the last known good ones
+        bounds = self._bias_bounds()
+        if (  # what the next start would take, else the last known good ones (the tyres with them)
+            biases is not None
+            and group_within_bounds("sensor_biases", biases, bounds)
+            and (accel_biases is None or group_within_bounds("accel_biases", accel_biases, bounds))
+        ):
             self._kept_biases, self._kept_accel_biases = biases, accel_biases
         self._kept_steer_zero = steer_zero = steer_zero if steer_zero is not None else self._kept_steer_zero
         biases = (self._kept_biases, self._kept_accel_biases)
