@@ -504,19 +504,26 @@ def _update(st: np.ndarray, H: np.ndarray, innovation: float, variance: float, g
         # not applied, but still evidence for the consistency monitor (which clips it): counted as 0, the gated
         # peaks of a deep-lean weave (a_y to 10 m/s^2 and back within 0.2 s) left only the troughs in its mean
         return False
+    _apply(x, P, PH, s, innovation)
+    return True
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _apply(x: np.ndarray, P: np.ndarray, PH: np.ndarray, s: float, innovation: float) -> None:
+    """x += PH / s e, P -= PH PH' / s (PH = P H, s its innovation variance), kept symmetric with a positive
+    diagonal against round-off."""
     for i in range(N_X):
         x[i] += PH[i] / s * innovation
     for i in range(N_X):
         for j in range(N_X):
             P[i, j] -= PH[i] * PH[j] / s
-    for i in range(N_X):  # keep P symmetric and its diagonal positive against round-off
+    for i in range(N_X):
         for j in range(i + 1, N_X):
             m = 0.5 * (P[i, j] + P[j, i])
             P[i, j] = m
             P[j, i] = m
         if P[i, i] < 1e-18:
             P[i, i] = 1e-18
-    return True
 
 
 @njit(cache=True)
@@ -537,12 +544,7 @@ def _widen_prior(st: np.ndarray, i: int, prior_var: float, wider_var: float) -> 
         return
     for k in range(N_X):
         PH[k] = P[k, i]
-    innovation = -x[i]
-    for k in range(N_X):
-        x[k] += PH[k] / s * innovation
-    for a in range(N_X):
-        for b in range(N_X):
-            P[a, b] -= PH[a] * PH[b] / s
+    _apply(x, P, PH, s, -x[i])
 
 
 @njit(cache=True)
