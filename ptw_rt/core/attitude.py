@@ -120,6 +120,8 @@ STATE = Layout(
     pitch_rate_seen=1,  # rad/s, the gyros' pitch rate (q cos(roll) - r sin(roll), bias-corrected), low-passed
     pitch_rate_felt=1,  # rad/s, the pitch rate the vertical accelerometer implies (u pitch'), low-passed
     turn_accel_mean=1,  # m/s^2, what a turn adds along x at the IMU (-v_y r - x_imu r^2), over the offset's window
+    offset_doubt=1,  # m/s^2, running mean of the longitudinal offset's innovations over OFFSET_DOUBT_TIME
+    offset_age=1,  # s the speed stage's offset has been given without a break (its window full after OFFSET_TIME)
     level_for=1,  # s the road has been seen level, riding (LEVEL_ROAD_TIME)
     level_prior_due=1,  # 1 while the accelerometers' biases still hold the tight prior a level road widens (once)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
@@ -159,6 +161,8 @@ STATE = Layout(
     ST_PITCH_RATE_SEEN,
     ST_PITCH_RATE_FELT,
     ST_TURN_ACCEL_MEAN,
+    ST_OFFSET_DOUBT,
+    ST_OFFSET_AGE,
     ST_LEVEL_FOR,
     ST_LEVEL_PRIOR_DUE,
     ST_TMP,
@@ -273,6 +277,14 @@ VERTICAL_ACCEL_NOISE = 0.2  # m/s^2 per cycle (the simulator's; a real engine's 
 # whose error is correlated over seconds, so each cycle's is taken with this noise (its information over 3 s is that
 # of one 0.06 m/s^2 reading; 5 before the lag and the turn's part were modelled, 0.5 - 5 no better since)
 ACCEL_OFFSET_NOISE = 1.0  # m/s^2 per cycle
+# That offset is the one witness of the pitch no gyro or vertical-accelerometer bias moves. A pitch held wrong while
+# the grade turns (from nothing on a changing grade, b_q takes the grade's rate and the rate's gate stays shut)
+# leaves its innovations one-signed for as long as the rate is wrong; their running mean over OFFSET_DOUBT_TIME
+# (once the offset's own window is full) beyond OFFSET_DOUBT_LEVEL is OUT_PITCH_DOUBT >= 1, and the tyres do not
+# learn on the roll rate and lateral force such a pitch bends (docs/estimator.md, "The pitch doubted by the
+# longitudinal accelerometer": level roads' 0.008-0.055 m/s^2, hilly starts' 0.08-0.19)
+OFFSET_DOUBT_TIME = 3.0  # s
+OFFSET_DOUBT_LEVEL = 0.05  # m/s^2
 # A step of the roll-rate gyro's bias (a shock, a sensor that restarts on a stale calibration) is a jump of its level
 # between two samples that no roll acceleration made; riding straight nothing else tells it from a sideslip within
 # the 1 s the roll's tolerance leaves (docs/estimator.md, "A step within one sample"). `_roll_gyro_step` finds it
@@ -390,6 +402,7 @@ OUTPUTS = Layout(
     roll_correction=1,  # rad, what this cycle's measurement updates moved the roll by (the prediction's move not)
     gyro_step=1,  # rad/s, the roll-gyro bias step found and taken this cycle (0: none; `_roll_gyro_step`)
     pitch=1,  # rad, the IMU's pitch off the level (X_PITCH)
+    pitch_doubt=1,  # the longitudinal offset's innovations' running mean over OFFSET_DOUBT_LEVEL (>= 1: doubted)
     # the stage's (attitude_stage), not the filter's:
     ok=1,  # 1: the filter is initialised and every output above is finite
     rejected_run=1,  # consecutive cycles of rejected lateral-force innovations
@@ -418,13 +431,14 @@ OUTPUTS = Layout(
     OUT_ROLL_CORRECTION,
     OUT_GYRO_STEP,
     OUT_PITCH,
+    OUT_PITCH_DOUBT,
     OUT_OK,
     OUT_REJECTED_RUN,
     OUT_CONSISTENCY,
     OUT_INCONSISTENT,
     OUT_SATURATED,
 ) = OUTPUTS.offsets
-N_FILTER_OUT = OUT_PITCH + 1  # what `attitude_step` writes
+N_FILTER_OUT = OUT_PITCH_DOUBT + 1  # what `attitude_step` writes
 OUT_SIZE = OUTPUTS.size
 
 
@@ -671,6 +685,8 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     st[ST_PITCH_RATE_SEEN] = 0.0
     st[ST_PITCH_RATE_FELT] = 0.0
     st[ST_TURN_ACCEL_MEAN] = 0.0
+    st[ST_OFFSET_DOUBT] = 0.0
+    st[ST_OFFSET_AGE] = 0.0
     if not keep_biases:
         for b in (X_BP, X_BQ, X_BR):
             x[b] = 0.0
@@ -937,7 +953,9 @@ def attitude_step(
         _update(st, H, x[X_PITCH_RATE] - (q1 * c - r1 * s), prm[A_R_PITCH_RATE] ** 2, gate)
         nu_pitch = st[ST_NU]
 
-    if math.isfinite(accel_x_offset):
+    if not math.isfinite(accel_x_offset):
+        st[ST_OFFSET_AGE] = 0.0  # its window starts again when the GPS is back: doubt it only once it is full
+    else:
         # the longitudinal accelerometer's offset against GPS: g sin(pitch) + b_ax and a turn's part, a running mean
         # over the speed stage's window: the pitch of that window is this one less what its rate turned it by since
         pitch = x[X_PITCH] - st[ST_PITCH_LAG]
@@ -945,6 +963,9 @@ def attitude_step(
         H[X_PITCH] = g * math.cos(pitch)
         H[X_BAX] = 1.0
         nu = accel_x_offset - g * math.sin(pitch) - x[X_BAX] - st[ST_TURN_ACCEL_MEAN]
+        st[ST_OFFSET_AGE] += dt
+        if st[ST_OFFSET_AGE] >= spd.OFFSET_TIME:
+            st[ST_OFFSET_DOUBT] += dt / OFFSET_DOUBT_TIME * (nu - st[ST_OFFSET_DOUBT])
         _update(st, H, nu, ACCEL_OFFSET_NOISE**2, gate)
 
     if standstill and rates_ok:
@@ -1154,6 +1175,7 @@ def attitude_step(
     out[OUT_ROLL_RATE] = prev[PREV_P] - x[X_BP] + tan_pitch * prev[PREV_RG]
     out[OUT_YAW_RATE] = prev[PREV_RG] / cos_pitch
     out[OUT_PITCH] = x[X_PITCH]
+    out[OUT_PITCH_DOUBT] = abs(st[ST_OFFSET_DOUBT]) / OFFSET_DOUBT_LEVEL
     out[OUT_ROLL_SD] = math.sqrt(max(P[X_PHI, X_PHI], 0.0))
     out[OUT_BP] = x[X_BP]
     out[OUT_BQ] = x[X_BQ]

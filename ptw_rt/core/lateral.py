@@ -298,7 +298,12 @@ def lateral_stage(
         )
         track = observe and u >= prm[P_MIN_LEARNING_SPEED]
         bias_share = _bias_share(st, prm, attitude[att.OUT_YAW_RATE_SD], attitude[att.OUT_BAY_SD], y_kf[3], u)
-        learn = track and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL] and bias_share <= prm[P_MAX_LEARNING_BIAS_SHARE]
+        learn = (
+            track
+            and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL]
+            and bias_share <= prm[P_MAX_LEARNING_BIAS_SHARE]
+            and attitude[att.OUT_PITCH_DOUBT] < 1.0
+        )
         tb.bank_step(
             bank,
             bank_out,
