@@ -67,6 +67,7 @@ def timeouts_not_injected(daemon, injected: dict[str, int]) -> int:
 
 
 VM_TOO_SLOW = "VM too slow to judge timing"  # how a timing skip of tests/test_vcan_integration.py starts
+UML_CANNOT_RUN = "User-Mode Linux ran no process on this host"  # ... and a skip where the VM runs nothing at all
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
@@ -88,10 +89,19 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     if not skipped:
         return
     reason = skipped[0]
+    if UML_CANNOT_RUN in reason:
+        how = (
+            "The packages are installed, but the distribution's User-Mode Linux cannot run a process on this host "
+            "(probably its CPU's FPU state, AMX tiles included, is larger than that kernel saves); to run them: "
+            "another host CPU, a newer user-mode-linux, or a kernel with the vcan module."
+        )
+    else:
+        how = (
+            "To run them: sudo apt-get install user-mode-linux can-utils kmod iproute2 rt-tests (User-Mode Linux "
+            "boots a kernel with vcan when this one has none; .ci/run does this), or a kernel with the vcan module."
+        )
     terminalreporter.write_line(
-        f"SOCKETCAN INTEGRATION TESTS SKIPPED ({len(skipped)} tests, tests/test_vcan_integration.py): {reason}. "
-        "To run them: sudo apt-get install user-mode-linux can-utils kmod iproute2 rt-tests (User-Mode Linux boots a "
-        "kernel with vcan when this one has none; .ci/run does this), or a kernel with the vcan module.",
+        f"SOCKETCAN INTEGRATION TESTS SKIPPED ({len(skipped)} tests, tests/test_vcan_integration.py): {reason}. {how}",
         red=True,
         bold=True,
     )
