@@ -97,6 +97,7 @@ CONTRACT_OUTPUTS: dict[str, dict] = {
             "TireModelConsistency": (None, 0.01, 0.0, 600.0),
             "TireLearning": (None, 1, 0, 1),
             "TireChange": (None, 0.5, 0.0, 63.5),  # added in v1.4 (a road that changed: the bank's change statistic)
+            "PitchDoubted": (None, 1, 0, 1),  # added in v1.6 (the tyres wait while the pitch is doubted)
         },
     },
     # added in v1.2 (issue #16: the plausibility monitor); every earlier name unchanged

@@ -77,6 +77,7 @@ class Source:
                 "TireModelConsistency": 4.5,
                 "TireLearning": 1,
                 "TireChange": 0.5,
+                "PitchDoubted": 0,
             }
         return {
             "EST_TireStiffness_Valid": 1,

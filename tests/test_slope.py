@@ -243,6 +243,10 @@ def test_from_nothing_on_a_changing_grade_the_tyres_wait_until_the_pitch_is_righ
     assert not cornering_valid.any() or stiffness_err[cornering_valid].max() < 15.0  # 20.7 % on the code before
     doubt = _pitch_doubt_per_cycle(ev)
     assert (doubt[(ev.t > 7.0) & (ev.t < 15.0)] >= 1.0).all()  # the pitch 1.0-1.6 deg off the grade there
+    # ... and it is published (EST_TireConfidence.PitchDoubted), while TireLearning says the tyres wait
+    flagged = E[:, L.E_PITCH_DOUBTED] != 0.0
+    assert (flagged == (doubt >= 1.0)).all()
+    assert not (E[flagged, L.E_TYRE_LEARNING] != 0.0).any()
 
 
 @pytest.mark.slow
@@ -253,6 +257,7 @@ def test_on_a_level_road_the_pitch_is_not_doubted_and_the_tyres_learn():
     ev = evaluate_ride(simulate("slalom_30", seed=3527, perturbation=parse_perturbations(level)))
     doubt = _pitch_doubt_per_cycle(ev)
     assert doubt[ev.mask].max() < 0.5
+    assert not ev.estimates[:, L.E_PITCH_DOUBTED].any()
     E, truth = ev.estimates, ev.truth
     cornering_valid = ev.mask & ((E[:, L.E_VALID].astype(int) & L.V_CORNERING) != 0)
     stiffness_err = 100.0 * np.abs(E[:, L.E_C_ALPHA_FRONT] / truth["c_alpha_front"] - 1.0)

@@ -131,7 +131,8 @@ E_PLAUSIBILITY = 45  # that residual over its speed-dependent threshold: > 1 rai
 E_STEER_RESIDUAL = 46  # rad, running mean of steer - kinematic steer riding nearly straight (> 0.5 deg: implausible)
 E_TYRE_CHANGE = 47  # nats, the tyre bank's change statistic (a neighbouring tyre explains the last cycles better)
 E_ROLL_UIO_SENSORS = 48  # rad, the UIHOSMO channel's own roll (raw IMU and speed, no attitude filter; 0 until started)
-ESTIMATES_SIZE = 49
+E_PITCH_DOUBTED = 49  # 1 while the longitudinal accelerometer against GPS doubts the attitude's pitch: no tyre learning
+ESTIMATES_SIZE = 50
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -195,6 +196,7 @@ ESTIMATE_NAMES = (
     "steer_residual",
     "tyre_change",
     "roll_uio_sensors",
+    "pitch_doubted",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

@@ -22,6 +22,7 @@ from ptw_rt.core.layout import (
     E_FY_FRONT,
     E_FY_REAR,
     E_LAT_VEL,
+    E_PITCH_DOUBTED,
     E_PLAUSIBILITY,
     E_RIDER_TORQUE,
     E_ROLL,
@@ -85,6 +86,7 @@ SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
         ("TireModelConsistency", E_TYRE_NIS, 0),
         ("TireLearning", E_TYRE_LEARNING, 0),
         ("TireChange", E_TYRE_CHANGE, 0),
+        ("PitchDoubted", E_PITCH_DOUBTED, 0),
     ),
     # the plausibility monitor (issue #16): diagnostics, valid while the estimator runs
     "EST_Plausibility": (
