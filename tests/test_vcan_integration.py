@@ -282,45 +282,47 @@ def _raise_priority() -> None:
         pass
 
 
-def _boot_uml(kernel: str, results: Path, script: Path, env_file: Path) -> tuple[int, str]:
-    """Boot the VM with ``script`` as init; returns (exit status, console). Fails the tests on a timeout."""
-    cmd = [
-        kernel,
-        "mem=2G",
-        "root=/dev/root",
-        "rootfstype=hostfs",
-        "rootflags=/",
-        "rw",
-        f"init={script}",
-        "con=null",
-        "con0=fd:0,fd:1",
-        f"PTW_VCAN_ENV={env_file}",  # unknown key=value parameters become init's environment
-    ]
+def _run_uml(
+    kernel: str, workdir: Path, script: Path, mem: str, timeout: float, *params: str
+) -> tuple[int | None, str]:
+    """Boot the VM with ``script`` as init (``params``: more kernel parameters) in ``workdir``: (exit status,
+    console); the status None if it was still running after ``timeout`` s (then killed)."""
+    cmd = [kernel, f"mem={mem}", "root=/dev/root", "rootfstype=hostfs", "rootflags=/", "rw", f"init={script}"]
+    cmd += ["con=null", "con0=fd:0,fd:1", *params]
     env = dict(os.environ)
-    # UML backs its memory with a (sparse) temporary file: /dev/shm if there is one, else the results dir
+    # UML backs its memory with a (sparse) temporary file: /dev/shm if there is one, else the working directory
     shm = Path("/dev/shm")
-    env["TMPDIR"] = str(shm if shm.is_dir() and os.access(shm, os.W_OK) else results)
+    env["TMPDIR"] = str(shm if shm.is_dir() and os.access(shm, os.W_OK) else workdir)
     proc = subprocess.Popen(
         cmd,
         preexec_fn=_raise_priority,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
-        cwd=results,
+        cwd=workdir,
         env=env,
         start_new_session=True,
     )
     try:
-        out, _ = proc.communicate(timeout=SESSION_TIMEOUT_S)
+        out, _ = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)  # the VM's own process group (UML runs several host processes)
         out, _ = proc.communicate()
+        return None, out.decode(errors="replace")
+    return proc.returncode, out.decode(errors="replace")
+
+
+def _boot_uml(kernel: str, results: Path, script: Path, env_file: Path) -> tuple[int, str]:
+    """Boot the VM with ``script`` as init; returns (exit status, console). Fails the tests on a timeout."""
+    # unknown key=value parameters become init's environment
+    rc, console = _run_uml(kernel, results, script, "2G", SESSION_TIMEOUT_S, f"PTW_VCAN_ENV={env_file}")
+    if rc is None:
         log = (results / "session.log").read_text() if (results / "session.log").exists() else ""
         pytest.fail(
             f"UML session timed out after {SESSION_TIMEOUT_S} s\n--- console ---\n"
-            f"{out.decode(errors='replace')[-6000:]}\n--- session.log ---\n{log[-3000:]}"
+            f"{console[-6000:]}\n--- session.log ---\n{log[-3000:]}"
         )
-    return proc.returncode, out.decode(errors="replace")
+    return rc, console
 
 
 UML_PROBE_TIMEOUT_S = 120  # s: a boot takes ~4 s
@@ -340,25 +342,11 @@ def _uml_runs_no_process(kernel: str, work: Path) -> str | None:
     script = probe / "init.sh"
     script.write_text(f"#!/bin/sh\necho ok > '{ran}'\nhalt -f\n")
     script.chmod(script.stat().st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
-    cmd = [kernel, "mem=256M", "root=/dev/root", "rootfstype=hostfs", "rootflags=/", "rw", f"init={script}"]
-    cmd += ["con=null", "con0=fd:0,fd:1"]
-    shm = Path("/dev/shm")
-    env = dict(os.environ, TMPDIR=str(shm if shm.is_dir() and os.access(shm, os.W_OK) else probe))
-    proc = subprocess.Popen(
-        cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=probe, env=env,
-        start_new_session=True,
-    )  # fmt: skip
-    try:
-        out, _ = proc.communicate(timeout=UML_PROBE_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.communicate()
-        return None  # slow, not broken: the session itself judges
-    if ran.exists():
-        return None
-    console = out.decode(errors="replace").splitlines()
-    telling = [line.strip() for line in console if "ptrace" in line or "Kernel panic" in line]
-    return f"{UML_CANNOT_RUN}: {'; '.join(telling[-2:]) or f'exit {proc.returncode}'}"
+    rc, console = _run_uml(kernel, probe, script, "256M", UML_PROBE_TIMEOUT_S)
+    if rc is None or ran.exists():
+        return None  # ran, or slow rather than broken: the session itself judges
+    telling = [line.strip() for line in console.splitlines() if "ptrace" in line or "Kernel panic" in line]
+    return f"{UML_CANNOT_RUN}: {'; '.join(telling[-2:]) or f'exit {rc}'}"
 
 
 def _run_native(results: Path, script: Path, env_file: Path) -> tuple[int, str]:
