@@ -121,7 +121,6 @@ STATE = Layout(
     pitch_rate_felt=1,  # rad/s, the pitch rate the vertical accelerometer implies (u pitch'), low-passed
     turn_accel_mean=1,  # m/s^2, what a turn adds along x at the IMU (-v_y r - x_imu r^2), over the offset's window
     offset_doubt=1,  # m/s^2, running mean of the longitudinal offset's innovations over OFFSET_DOUBT_TIME
-    offset_age=1,  # s the speed stage's offset has been given without a break (its window full after OFFSET_TIME)
     level_for=1,  # s the road has been seen level, riding (LEVEL_ROAD_TIME)
     level_prior_due=1,  # 1 while the accelerometers' biases still hold the tight prior a level road widens (once)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
@@ -162,7 +161,6 @@ STATE = Layout(
     ST_PITCH_RATE_FELT,
     ST_TURN_ACCEL_MEAN,
     ST_OFFSET_DOUBT,
-    ST_OFFSET_AGE,
     ST_LEVEL_FOR,
     ST_LEVEL_PRIOR_DUE,
     ST_TMP,
@@ -540,6 +538,13 @@ def _apply(x: np.ndarray, P: np.ndarray, PH: np.ndarray, s: float, innovation: f
             P[i, i] = 1e-18
 
 
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def pitch_doubted(out: np.ndarray) -> bool:
+    """The longitudinal accelerometer doubts the pitch (the stage's OUT_PITCH_DOUBT >= 1): the tyres do not learn
+    on what such a pitch bends, and EST_TireConfidence.PitchDoubted says so."""
+    return out[OUT_PITCH_DOUBT] >= 1.0
+
+
 @njit(cache=True)
 def _widen_prior(st: np.ndarray, i: int, prior_var: float, wider_var: float) -> None:
     """As if state i's prior (mean 0) had been wider_var, not prior_var, from the start. The narrower prior is the
@@ -686,7 +691,6 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     st[ST_PITCH_RATE_FELT] = 0.0
     st[ST_TURN_ACCEL_MEAN] = 0.0
     st[ST_OFFSET_DOUBT] = 0.0
-    st[ST_OFFSET_AGE] = 0.0
     if not keep_biases:
         for b in (X_BP, X_BQ, X_BR):
             x[b] = 0.0
@@ -795,6 +799,7 @@ def attitude_step(
     rates_trusted: bool = True,
     imu_fresh: bool = False,
     accel_x_offset: float = math.nan,
+    accel_x_offset_age: float = 0.0,
 ) -> None:
     """One cycle. p, q, r: body rates [rad/s]; f_y, f_z: body specific force [m/s^2]; u: forward speed and
     u_sd its standard deviation [m/s]; course [rad] valid when course_new (a fresh GPS fix at speed);
@@ -804,7 +809,8 @@ def attitude_step(
     imu_fresh: p and f_y are a new sound sample of each sensor (the roll-gyro step check compares consecutive ones);
     accel_x_offset: what the longitudinal accelerometer reads beyond the speed's rate [m/s^2] (the speed stage's,
     learned against GPS; NaN: none), g sin(pitch) + b_ax: with the turns it gives the pitch, which the roll's
-    kinematics need (roll' = p + tan(pitch) r_ground: the vehicle turns about the vertical)."""
+    kinematics need (roll' = p + tan(pitch) r_ground: the vehicle turns about the vertical); accel_x_offset_age: s its
+    running mean has run since it (re)started (the speed stage's; its innovations are doubted from OFFSET_TIME on)."""
     dt = prm[A_DT]
     g = prm[A_G]
     h = prm[A_IMU_HEIGHT]
@@ -953,9 +959,7 @@ def attitude_step(
         _update(st, H, x[X_PITCH_RATE] - (q1 * c - r1 * s), prm[A_R_PITCH_RATE] ** 2, gate)
         nu_pitch = st[ST_NU]
 
-    if not math.isfinite(accel_x_offset):
-        st[ST_OFFSET_AGE] = 0.0  # its window starts again when the GPS is back: doubt it only once it is full
-    else:
+    if math.isfinite(accel_x_offset):
         # the longitudinal accelerometer's offset against GPS: g sin(pitch) + b_ax and a turn's part, a running mean
         # over the speed stage's window: the pitch of that window is this one less what its rate turned it by since
         pitch = x[X_PITCH] - st[ST_PITCH_LAG]
@@ -963,8 +967,7 @@ def attitude_step(
         H[X_PITCH] = g * math.cos(pitch)
         H[X_BAX] = 1.0
         nu = accel_x_offset - g * math.sin(pitch) - x[X_BAX] - st[ST_TURN_ACCEL_MEAN]
-        st[ST_OFFSET_AGE] += dt
-        if st[ST_OFFSET_AGE] >= spd.OFFSET_TIME:
+        if accel_x_offset_age >= spd.OFFSET_TIME:  # its window full: the last OFFSET_TIME's mean
             st[ST_OFFSET_DOUBT] += dt / OFFSET_DOUBT_TIME * (nu - st[ST_OFFSET_DOUBT])
         _update(st, H, nu, ACCEL_OFFSET_NOISE**2, gate)
 
@@ -1265,6 +1268,7 @@ def attitude_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.
         not in_burst,
         inputs[inp.OUT_IMU_FRESH] != 0.0,
         speed[spd.OUT_ACCEL_OFFSET] if speed_known and speed[spd.OUT_GPS_LOST] == 0.0 else math.nan,
+        speed[spd.OUT_ACCEL_OFFSET_AGE],
     )
     if in_burst:
         st[ST_BURST_ROLL_MOVED] += out[OUT_ROLL_CORRECTION]

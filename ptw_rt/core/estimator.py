@@ -171,7 +171,7 @@ def publish(
     est[E_TYRE_NIS] = o_lat[lat.OUT_TYRE_NIS]
     est[E_TYRE_LEARNING] = o_lat[lat.OUT_TYRE_LEARNING]
     est[E_TYRE_CHANGE] = o_lat[lat.OUT_TYRE_CHANGE]
-    est[E_PITCH_DOUBTED] = 1.0 if o_att[att.OUT_PITCH_DOUBT] >= 1.0 else 0.0  # the lateral stage's learning gate
+    est[E_PITCH_DOUBTED] = 1.0 if att.pitch_doubted(o_att) else 0.0  # the lateral stage's learning gate
     est[E_C_ALPHA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 0]  # seed 001's adaptive observer (diagnostic)
     est[E_C_GAMMA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 1]
     est[E_C_ALPHA_REAR_SEED001] = o_stf[stf.OUT_STIFFNESS + 2]

@@ -302,7 +302,7 @@ def lateral_stage(
             track
             and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL]
             and bias_share <= prm[P_MAX_LEARNING_BIAS_SHARE]
-            and attitude[att.OUT_PITCH_DOUBT] < 1.0
+            and not att.pitch_doubted(attitude)
         )
         tb.bank_step(
             bank,

@@ -34,6 +34,7 @@ STATE = Layout(
     mean_accel=1,
     mean_speed=1,
     offset=1,
+    offset_age=1,  # s since the GPS speed's running mean (re)started: the offset's window is full after OFFSET_TIME
     ring0=1,
 )
 (
@@ -48,6 +49,7 @@ STATE = Layout(
     SPD_MEAN_ACCEL,
     SPD_MEAN_SPEED,
     SPD_OFFSET,
+    SPD_OFFSET_AGE,
     SPD_RING0,
 ) = STATE.offsets
 
@@ -97,8 +99,9 @@ OUTPUTS = Layout(
     # m/s^2: what the longitudinal accelerometer reads beyond the speed's rate, over the last OFFSET_TIME against
     # GPS: its bias and g sin(pitch) of an IMU pitched off the level (a slope, the suspension's sag, a mount)
     accel_offset=1,
+    accel_offset_age=1,  # s its window has run since it (re)started (full, the last OFFSET_TIME's, from OFFSET_TIME)
 )
-OUT_U, OUT_KNOWN, OUT_GPS_AGE, OUT_GPS_DOUBTED, OUT_GPS_LOST, OUT_ACCEL_OFFSET = OUTPUTS.offsets
+OUT_U, OUT_KNOWN, OUT_GPS_AGE, OUT_GPS_DOUBTED, OUT_GPS_LOST, OUT_ACCEL_OFFSET, OUT_ACCEL_OFFSET_AGE = OUTPUTS.offsets
 
 
 def new_speed_state(latency_samples: int) -> np.ndarray:
@@ -152,6 +155,7 @@ def speed_step(
         state[SPD_MEAN_SPEED] = gps_speed
         state[SPD_MEAN_ACCEL] = accel_x if math.isfinite(accel_x) else 0.0
         state[SPD_OFFSET] = state[SPD_MEAN_ACCEL]
+        state[SPD_OFFSET_AGE] = 0.0
         for k in range(n_ring):
             state[SPD_RING0 + k] = gps_speed
         state[SPD_INIT] = 1.0
@@ -194,11 +198,13 @@ def speed_step(
                 state[SPD_OFFSET] = state[SPD_MEAN_ACCEL] - rate
             else:  # after an outage the mean is not the last OFFSET_TIME's: start it again, keep the offset
                 state[SPD_MEAN_SPEED] = gps_speed
+                state[SPD_OFFSET_AGE] = 0.0
         # shift the stored predictions too, so the next fix is compared like with like
         for k in range(n_ring):
             state[SPD_RING0 + k] += share * innovation
     if u < 0.0:
         u = 0.0
+    state[SPD_OFFSET_AGE] += dt
     head = (head + 1) % n_ring
     state[SPD_RING0 + head] = u
     state[SPD_HEAD] = head
@@ -232,6 +238,7 @@ def speed_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.nda
     out[OUT_GPS_DOUBTED] = 1.0 if st[SPD_REFUSED_SHARE] > DOUBT_SHARE else 0.0
     out[OUT_GPS_LOST] = 1.0 if st[SPD_INIT] != 0.0 and st[SPD_SINCE] > prm[P_GPS_HOLD] else 0.0
     out[OUT_ACCEL_OFFSET] = st[SPD_OFFSET]
+    out[OUT_ACCEL_OFFSET_AGE] = st[SPD_OFFSET_AGE]
 
 
 STAGE = Stage(
