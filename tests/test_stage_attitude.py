@@ -33,7 +33,9 @@ def test_steady_turn_gives_the_coordinated_roll(settings, design):
     b = att.STAGE.alone(settings, design)
     u, r = 20.0, 0.05
     roll = math.atan(u * r / G)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0
+    )
     for k in range(1000):
         t = 0.01 * k
         course_new = k % 10 == 0 and k >= 10
@@ -56,7 +58,9 @@ def test_not_ok_before_the_first_sound_sample(settings, design):
         b.params,
         b.outputs,
         inputs,
-        spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=0.0, known=0.0),
+        spd.OUTPUTS.vector(
+            accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=0.0, known=0.0
+        ),
     )
     assert b.outputs[att.OUT_OK] == 0.0
 
@@ -64,7 +68,7 @@ def test_not_ok_before_the_first_sound_sample(settings, design):
 def test_standstill_reads_the_gyro_biases(settings, design):
     b = att.STAGE.alone(settings, design)
     speed = spd.OUTPUTS.vector(
-        accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=0.0, known=1.0
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=0.0, known=1.0
     )  # a fix says: standing
     for _ in range(3000):
         att.attitude_stage(b.state, b.params, b.outputs, _inputs(0.004, -0.002, 0.003, 0.0, -G), speed)
@@ -107,7 +111,9 @@ def test_a_gyro_at_its_full_scale_grows_the_roll_uncertainty_like_a_held_rate(se
     not the rate: the roll's uncertainty grows as a held rate's, enough within 4 cycles to end the roll's VALID
     (3 sd within its 3 deg tolerance), and the stage says the gyro saturated (the supervisor drops the roll rate)."""
     b = att.STAGE.alone(settings, design)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=15.0, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=15.0, known=1.0
+    )
     for k in range(3000):  # riding straight at 15 m/s, GPS courses at 10 Hz
         inputs = _inputs(0.0, 0.0, 0.0, 0.0, -G, 0.0, k % 10 == 0 and k > 10)
         att.attitude_stage(b.state, b.params, b.outputs, inputs, speed)
@@ -133,7 +139,9 @@ def test_a_burst_of_corrupt_input_doubts_what_it_moved_when_it_ends(settings, de
     b = att.STAGE.alone(settings, design)
     u, r = 20.0, 0.05
     roll = math.atan(u * r / G)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0
+    )
     clean = _inputs(0.0, r * math.sin(roll), r * math.cos(roll), 0.0, -G / math.cos(roll))
     garbage = clean.copy()
     garbage[inp.OUT_RAW + inp.RAW_AY] = 1.0  # m/s^2 off, within the gate: it passes and moves the estimate

@@ -31,7 +31,9 @@ def _step(b, inputs, speed, attitude, imu_age=0.0):
 def test_without_the_attitude_filter_the_roll_is_pulled_to_the_kinematic_roll(settings, design):
     b = cnd.STAGE.alone(settings, design)
     u, r = 20.0, 0.05
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0
+    )
     no_attitude = att.OUTPUTS.vector({}, strict=False)
     steps = int(10.0 / b.params[cnd.P_FUSION_RATE] / b.params[cnd.P_DT])  # ten time constants
     for _ in range(steps):
@@ -48,7 +50,9 @@ def test_with_the_attitude_filter(settings, design):
     b = cnd.STAGE.alone(settings, design)
     roll, p, r = 0.2, 0.1, 0.05
     attitude = att.OUTPUTS.vector({"ok": 1.0, "roll": roll, "roll_rate": p, "yaw_rate": r, "bay": 0.1}, strict=False)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0
+    )
     f_y, f_z = 1.0, -9.0
     for _ in range(300):  # the derivative filters settle on constant rates
         out = _step(b, _inputs(steer=522.0, f_y=f_y, f_z=f_z), speed, attitude, imu_age=0.004)
@@ -71,7 +75,9 @@ def test_low_speed_or_a_missing_core_sensor_stops_the_observers(settings, design
     out = _step(
         b,
         _inputs(),
-        spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=2.0, known=1.0),
+        spd.OUTPUTS.vector(
+            accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=2.0, known=1.0
+        ),
         attitude,
     )
     assert out[cnd.OUT_SPEED_LOW] == 1.0 and out[cnd.OUT_RUN] == 0.0
@@ -79,7 +85,9 @@ def test_low_speed_or_a_missing_core_sensor_stops_the_observers(settings, design
     out = _step(
         b,
         _inputs(reasons=lay.REASON_STALE),
-        spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=0.0),
+        spd.OUTPUTS.vector(
+            accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=0.0
+        ),
         attitude,
     )
     assert out[cnd.OUT_SPEED_LOW] == 1.0  # speed not known yet
@@ -88,7 +96,9 @@ def test_low_speed_or_a_missing_core_sensor_stops_the_observers(settings, design
     out = _step(
         b,
         inputs,
-        spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0),
+        spd.OUTPUTS.vector(
+            accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0
+        ),
         attitude,
     )
     assert out[cnd.OUT_SPEED_LOW] == 0.0 and out[cnd.OUT_RUN] == 0.0
@@ -98,7 +108,9 @@ def test_a_speed_that_has_taken_no_fix_for_the_hold_time_is_gps_lost(settings, d
     """Fixes arrive (the inputs stage sees them fresh) but the speed stage takes none (a doubted receiver)."""
     b = cnd.STAGE.alone(settings, design)
     attitude = att.OUTPUTS.vector({"ok": 1.0}, strict=False)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=1.5, gps_doubted=1.0, gps_lost=1.0, u=20.0, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=1.5, gps_doubted=1.0, gps_lost=1.0, u=20.0, known=1.0
+    )
     out = _step(b, _inputs(), speed, attitude)
     assert int(out[cnd.OUT_REASONS]) == lay.REASON_GPS_LOST and out[cnd.OUT_RUN] == 1.0
     speed[spd.OUT_GPS_LOST] = 0.0
@@ -110,7 +122,9 @@ COUNT = 2 * math.pi / 1024
 
 def _learn(b, steer, r=0.0, f_y=0.0, u=20.0, reasons=0, seconds=50.0):
     attitude = att.OUTPUTS.vector({"ok": 1.0, "yaw_rate": r}, strict=False)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0
+    )
     inputs = _inputs(r=r, f_y=f_y, steer=steer, reasons=reasons)
     inputs[inp.OUT_ACCEL_OK] = 1.0
     cycles = int(seconds / b.params[cnd.P_DT])

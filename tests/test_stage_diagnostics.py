@@ -15,7 +15,9 @@ from ptw_rt.core import speed as spd
 def _step(b, cond, u=20.0):
     attitude = att.OUTPUTS.vector({}, strict=False)
     inputs = inp.OUTPUTS.vector({"accel_ok": 1.0, "core_ok": 1.0}, strict=False)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=u, known=1.0
+    )
     dia.diagnostics_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, attitude, cond)
     return b.outputs
 
@@ -65,7 +67,9 @@ def test_the_uihosmo_on_the_sensors_takes_its_own_roll_not_the_attitude_filters(
     raw = np.array([0.0, 0.0, 0.01, 0.0, 0.1, -g, 512.0, 20.0])  # the yaw gyro and accelerometer read their biases
     flags = {"accel_ok": 1.0, "accel_trusted": 1.0, "core_ok": 1.0, "imu_ok": 1.0, "rates_ok": 1.0}
     inputs = inp.OUTPUTS.vector({**flags, "raw": raw}, strict=False)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0
+    )
     # the attitude filter: its yaw-gyro bias is taken (a calibration), its roll-rate bias is not
     attitude = att.OUTPUTS.vector({"ok": 1.0, "roll": 0.3, "bp": 0.2, "br": 0.01, "bay": 0.1}, strict=False)
     cond = cnd.OUTPUTS.vector(

@@ -20,7 +20,9 @@ def _step(b, cond, accel=1.0, attitude_ok=1.0, rates=1.0, steer_ok=1.0, imu_ok=1
     flags["steer_trusted"] = steer_ok if steer_trusted is None else steer_trusted
     flags["reasons"] = float(reasons)
     inputs = inp.OUTPUTS.vector(flags, strict=False)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0
+    )
     attitude = att.OUTPUTS.vector({"ok": attitude_ok}, strict=False)
     lat.lateral_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, attitude, cond)
     return b.outputs

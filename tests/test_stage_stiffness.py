@@ -16,7 +16,9 @@ from ptw_rt.core import stiffness as stf
 def _step(b, cond, run_time=10.0, gps_lost=0.0):
     inputs = inp.OUTPUTS.vector({"accel_ok": 1.0, "gps_lost": gps_lost}, strict=False)
     # a GPS lost to the inputs stage is lost to the speed stage too (its age counts fixes taken, not received)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=gps_lost, u=20.0, known=1.0)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=gps_lost, u=20.0, known=1.0
+    )
     lateral = lat.OUTPUTS.vector({"run_time": run_time}, strict=False)
     stf.stiffness_stage(b.state, b.params, b.outputs, b.tables, b.tindex, 0, inputs, speed, cond, lateral)
     return b.outputs

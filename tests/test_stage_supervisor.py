@@ -35,7 +35,9 @@ def _step(
 ):
     imu_ok = core_ok if imu_ok is None else imu_ok
     inputs = inp.OUTPUTS.vector({"core_ok": core_ok, "imu_ok": imu_ok, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
-    speed = spd.OUTPUTS.vector(accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=known)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=known
+    )
     attitude = att.OUTPUTS.vector(
         {
             "ok": 1.0,
@@ -396,7 +398,7 @@ def test_the_steer_angle_is_checked_against_the_yaw_rate_in_a_corner(settings, d
     def step(turn):
         inputs = inp.OUTPUTS.vector({"core_ok": 1.0, "imu_ok": 1.0, "accel_ok": 1.0, "rates_ok": 1.0}, strict=False)
         speed_out = spd.OUTPUTS.vector(
-            accel_offset=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=speed, **sup_speed
+            accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=speed, **sup_speed
         )
         attitude = att.OUTPUTS.vector({"ok": 1.0, "roll_sd": 0.001}, strict=False)
         cond = cnd.OUTPUTS.vector({"run": 1.0, **turn}, strict=False)
