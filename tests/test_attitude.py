@@ -463,3 +463,17 @@ def test_from_nothing_an_accelerometer_bias_the_tight_prior_doubts_is_not_left_i
     ours = ev.result["metrics"]["roll_rmse_deg"]
     peer = ev.result["baselines"]["ahrs_peer_roll_rmse_deg"]
     assert ours <= 0.8 * peer
+
+
+def test_the_grade_odds_favour_two_sensors_that_agree_and_not_one_alone():
+    """`_grade_odds` at 50 km/h (the gyros' bias prior 0.01 rad/s, the vertical accelerometer's 0.118 m/s^2 read as
+    a pitch rate, a hilly road's rate 0.015 rad/s): a pitch rate both the gyros and the vertical accelerometer read is
+    a grade's; one only one of them reads is that sensor's bias; two that disagree, or nothing read, a level road."""
+    var_seen, var_felt, var_rate = 0.01**2, (0.118 / 13.9) ** 2, 0.015**2
+    grade = math.log(att.GRADE_TEST_ODDS)
+    assert att._grade_odds(0.03, 0.03, var_seen, var_felt, var_rate) > grade
+    assert att._grade_odds(-0.03, -0.03, var_seen, var_felt, var_rate) > grade
+    assert att._grade_odds(0.02, 0.0, var_seen, var_felt, var_rate) < 0.0  # the gyro's bias
+    assert att._grade_odds(0.0, 0.02, var_seen, var_felt, var_rate) < grade  # the accelerometer's
+    assert att._grade_odds(0.02, -0.01, var_seen, var_felt, var_rate) < 0.0  # the two disagree
+    assert att._grade_odds(0.0, 0.0, var_seen, var_felt, var_rate) < 0.0

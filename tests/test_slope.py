@@ -17,7 +17,7 @@ import pytest
 from conftest import ride_with_roll_right
 
 from ptw_rt.core import layout as L  # noqa: N812
-from ptw_rt.eval.evaluate import evaluate_ride, evaluate_scenario
+from ptw_rt.eval.evaluate import evaluate_ride, evaluate_scenario, ride_biases
 from ptw_rt.eval.matrix import cell_metrics
 from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
 from ptw_rt.sim.ride import parse_perturbations, simulate
@@ -263,3 +263,88 @@ def test_on_a_level_road_the_pitch_is_not_doubted_and_the_tyres_learn():
     stiffness_err = 100.0 * np.abs(E[:, L.E_C_ALPHA_FRONT] / truth["c_alpha_front"] - 1.0)
     assert cornering_valid.sum() > 500
     assert stiffness_err[cornering_valid].max() < 10.0
+
+
+# random set 7001's ride (`ptw-rt evaluate --random 200 --random-seed 7001 --hills`): from nothing at 100 km/h on a
+# grade swinging by 5 deg over every 210 m, its rate 0.07 rad/s at the start
+GRADE_CHANGING_FAST = [
+    "stiffness=1.189",
+    "mu_scale=0.965",
+    "added_mass=18.989",
+    "imu_noise=1.061",
+    "imu_bias=1.428",
+    "steer_offset=1.000",
+    "rider_noise=1.876",
+    "road_slope=-1.059",
+    "road_slope_swing=5.010",
+    "road_slope_length=209.613",
+]
+
+
+def _attitude_per_cycle(ev, *offsets: int) -> np.ndarray:
+    """The attitude stage's state at `offsets` each cycle: the ride's Samples stepped again through a new estimator."""
+    from ptw_rt.edge.cycle import build_runner
+
+    runner = build_runner(DEFAULT_CONFIG, DEFAULT_DESIGN)
+    estimates = np.zeros(L.ESTIMATES_SIZE)
+    kept = np.empty((len(ev.samples), len(offsets)))
+    for k, sample in enumerate(ev.samples):
+        runner.estimator.step(sample, estimates)
+        kept[k] = runner.estimator.states["attitude"][list(offsets)]
+    assert np.allclose(estimates, ev.estimates[-1], equal_nan=True)  # the same run as the evaluation's
+    return kept
+
+
+def _grade(ride, t: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """The road's grade under the vehicle [rad] at times t, as the simulator draws it."""
+    p = ride.perturbation
+    ridden = np.concatenate(([0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))))
+    phase = 2.0 * math.pi / p.road_slope_length * ridden
+    return math.radians(p.road_slope) + math.radians(p.road_slope_swing) * np.sin(phase)
+
+
+@pytest.mark.slow
+def test_from_nothing_on_a_grade_changing_fast_the_start_gives_its_rate_to_the_grade_not_the_biases():
+    """From nothing at 100 km/h on a grade turning the chassis at 0.07 rad/s, the level road's prior gave the rate to
+    b_q (0.06 rad/s at 1 s, its truth -0.002) and the u pitch' to b_az, and the pitch ran 3.4-4.1 deg behind the grade
+    from 1 s to 6 s. The gyros' and the vertical accelerometer's raw rates agree, as two biases would not: after the
+    start's test the rate is the grade's, each bias the rest of its own sensor's, the pitch turned by what the rate
+    turned it (docs/estimator.md, "The start on a changing grade")."""
+    from ptw_rt.core import attitude as att
+
+    ride = simulate("dlc_100", seed=1887, perturbation=parse_perturbations(GRADE_CHANGING_FAST))
+    ev = evaluate_ride(ride)
+    kept = _attitude_per_cycle(ev, att.ST_X + att.X_PITCH, att.ST_X + att.X_BQ, att.ST_GRADE_FOUND)
+    pitch, bq, found = kept.T
+    after_test = (ev.t > 2.0) & (ev.t < 6.0)
+    assert found[-1] == 1.0
+    pitch_err = np.degrees(pitch - _grade(ride, ev.t, ev.truth["speed"]))
+    assert np.abs(pitch_err[after_test]).max() < 1.5  # 3.4-4.1 deg on the code before
+    true_bq = ride_biases(ride)[1]  # -0.0017 rad/s
+    assert np.abs(bq[after_test] - true_bq).max() < 0.005  # 0.008-0.062 rad/s on the code before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["dlc_50", "slalom_30", "handling_40_120", "mu_drop"])
+def test_on_a_level_road_the_start_finds_no_grade_whatever_the_biases(scenario):
+    """A level road's start, the IMU's biases twice the file's: the gyros' and the vertical accelerometer's raw pitch
+    rates are two independent biases, which do not agree like a grade's rate: the test leaves the level road's prior."""
+    from ptw_rt.core import attitude as att
+
+    ev = evaluate_ride(simulate(scenario, perturbation=parse_perturbations(["imu_bias=2.0"])))
+    (found,) = _attitude_per_cycle(ev, att.ST_GRADE_FOUND).T
+    assert not found.any()
+
+
+@pytest.mark.slow
+def test_a_start_at_rest_reads_the_biases_there_not_by_the_grade_test():
+    """`urban` starts at rest on a hilly road: the gyros read their biases at standstill, where no grade turns the
+    vehicle, so the start's test of the raw pitch rates is disarmed before the first metre and never re-splits."""
+    from ptw_rt.core import attitude as att
+
+    hills = ["road_slope=2", "road_slope_swing=5", "road_slope_length=300"]
+    ev = evaluate_ride(simulate("urban", perturbation=parse_perturbations(hills)))
+    due, found = _attitude_per_cycle(ev, att.ST_GRADE_TEST_DUE, att.ST_GRADE_FOUND).T
+    moving = ev.truth["speed"] > 1.0
+    assert ev.truth["speed"][0] == 0.0 and not due[moving].any()
+    assert not found.any()

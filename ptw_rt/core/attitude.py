@@ -122,6 +122,13 @@ STATE = Layout(
     turn_accel_mean=1,  # m/s^2, what a turn adds along x at the IMU (-v_y r - x_imu r^2), over the offset's window
     offset_doubt=1,  # m/s^2, running mean of the longitudinal offset's innovations over OFFSET_DOUBT_TIME
     level_for=1,  # s the road has been seen level, riding (LEVEL_ROAD_TIME)
+    # the start's test of a grade's rate (`_grade_start_test`), armed by a start from nothing:
+    grade_test_due=1,  # 1 until the test has run (0: run, or the biases were read at standstill first)
+    grade_test_seen=1,  # rad/s, sum over its cycles of the gyros' raw pitch rate (no bias taken off) ...
+    grade_test_felt=1,  # rad/s, ... of the vertical accelerometer's (no bias taken off) ...
+    grade_test_rate=1,  # rad/s, ... of the filter's grade rate ...
+    grade_test_cycles=1,  # ... and their count
+    grade_found=1,  # 1 once the test gave the start's pitch rate to the grade (the biases re-split)
     level_prior_due=1,  # 1 while the accelerometers' biases still hold the tight prior a level road widens (once)
     tmp=3 * N_X + N_X * N_X,  # scratch: K, H, PH (3 N_X) and an N_X x N_X product
 )
@@ -162,6 +169,12 @@ STATE = Layout(
     ST_TURN_ACCEL_MEAN,
     ST_OFFSET_DOUBT,
     ST_LEVEL_FOR,
+    ST_GRADE_TEST_DUE,
+    ST_GRADE_TEST_SEEN,
+    ST_GRADE_TEST_FELT,
+    ST_GRADE_TEST_RATE,
+    ST_GRADE_TEST_CYCLES,
+    ST_GRADE_FOUND,
     ST_LEVEL_PRIOR_DUE,
     ST_TMP,
 ) = STATE.offsets
@@ -260,9 +273,10 @@ PITCH_RATE_LEVEL = 0.003  # rad/s
 # in the turns: a hilly road's roll VALID 2.4 deg off with the wide prior from the start). So the wide prior is
 # applied only once both the gyros' and the vertical accelerometer's pitch rates have shown a level road for
 # LEVEL_ROAD_TIME (1 s: a handling road's crest, its rate still in b_q, passed for one), and then as if from the start
-# (`_widen_prior`). Known gap: a start on a grade changing at a steady rate looks level to both (b_q and b_az take
-# the rate; nothing tells them apart before the rate changes) and widens it at once (docs/estimator.md, "The
-# accelerometer's bias a priori, once the road is level")
+# (`_widen_prior`). A start on a grade changing at a steady rate looks level to both once b_q and b_az have taken the
+# rate; the start's test (`_grade_start_test`, GRADE_TEST_TIME) takes it back where the two raw rates agree beyond
+# what their biases span (docs/estimator.md, "The accelerometer's bias a priori, once the road is level" and "The
+# start on a changing grade")
 LEVEL_ROAD_TIME = 2.0  # s
 GRADE_KNOWN_BIAS_SD = 0.0035  # rad/s: a pitch gyro's bias this sure starts the grade's rate open
 GRADE_DOUBT_CLOSES = 2.0  # the drive closes as the lateral innovations' running mean nears half the monitor's limit
@@ -283,6 +297,19 @@ ACCEL_OFFSET_NOISE = 1.0  # m/s^2 per cycle
 # longitudinal accelerometer": level roads' 0.008-0.055 m/s^2, hilly starts' 0.08-0.19)
 OFFSET_DOUBT_TIME = 3.0  # s
 OFFSET_DOUBT_LEVEL = 0.05  # m/s^2
+# From nothing at speed on a grade that changes, the level road's prior on the grade's rate gives most of the gyros'
+# pitch rate to b_q (and the u pitch' the vertical accelerometer feels to b_az) within the first second, and nothing
+# takes it back before the rate changes: the pitch then runs degrees off for tens of seconds and the roll with it
+# (`dlc_100` on a 5 deg swing every 210 m: b_q 0.06 rad/s for 0.002, the pitch 3-4 deg off). But two sensors' biases
+# are independent and a grade's rate is common to both: over the first GRADE_TEST_TIME of riding the gyros' and the
+# vertical accelerometer's raw pitch rates (no bias taken off) are averaged and weighed under both hypotheses, biases
+# alone (each N(0, its prior)) or a grade's rate (N(0, a hilly road's spread), the same in both) beside them
+# (`_grade_odds`). Where the grade explains them GRADE_TEST_ODDS times better, the rate is the two readings' common part
+# and each bias the rest of its own sensor's, and the pitch is turned by what the rate turned it over the test
+# (`_grade_start_test`; docs/estimator.md, "The start on a changing grade"). A level road's biases do not agree like
+# that: every matrix ride's figures are the same to the digit. A start at rest reads the biases at standstill instead
+GRADE_TEST_TIME = 1.0  # s
+GRADE_TEST_ODDS = 20.0
 # A step of the roll-rate gyro's bias (a shock, a sensor that restarts on a stale calibration) is a jump of its level
 # between two samples that no roll acceleration made; riding straight nothing else tells it from a sideslip within
 # the 1 s the roll's tolerance leaves (docs/estimator.md, "A step within one sample"). `_roll_gyro_step` finds it
@@ -567,6 +594,55 @@ def _widen_prior(st: np.ndarray, i: int, prior_var: float, wider_var: float) -> 
 
 
 @njit(cache=True)
+def _grade_odds(seen: float, felt: float, var_seen: float, var_felt: float, var_rate: float) -> float:
+    """Natural log of the odds that two raw pitch rates, seen (gyros) and felt (vertical accelerometer), are a grade's
+    rate common to both (variance var_rate) plus each sensor's independent bias and noise (var_seen, var_felt),
+    against the biases and noise alone."""
+    a, d, w = var_seen, var_felt, var_rate
+    level = seen * seen / a + felt * felt / d
+    det_grade = (a + w) * (d + w) - w * w
+    grade = ((d + w) * seen * seen - 2.0 * w * seen * felt + (a + w) * felt * felt) / det_grade
+    return 0.5 * (level - grade) - 0.5 * math.log(det_grade / (a * d))
+
+
+@njit(cache=True)
+def _grade_start_test(
+    st: np.ndarray, prm: np.ndarray, u: float, s: float, c: float, q: float, r: float, rate_sd: float, dt: float
+) -> None:
+    """Once GRADE_TEST_TIME of the start's raw pitch rates is summed: where a grade's rate explains them better than
+    two biases (module constants GRADE_TEST_*), re-split them. u: speed [m/s]; s, c: sin and cos of the roll; q, r:
+    this cycle's raw pitch and yaw rates [rad/s]; rate_sd: a hilly road's spread of the rate at this speed [rad/s]."""
+    n = st[ST_GRADE_TEST_CYCLES]
+    if n < GRADE_TEST_TIME / dt or not (u > GRADE_MIN_SPEED and c > GRADE_MAX_ROLL_COS):
+        return
+    st[ST_GRADE_TEST_DUE] = 0.0
+    x = st[ST_X : ST_X + N_X]
+    P = st[ST_P : ST_P + N_X * N_X].reshape((N_X, N_X))
+    seen, felt = st[ST_GRADE_TEST_SEEN] / n, st[ST_GRADE_TEST_FELT] / n
+    var_seen = prm[A_INIT_GYRO_BIAS_SD] ** 2
+    felt_per_baz = 1.0 / (u * c)  # the vertical accelerometer's bias read as a pitch rate
+    # the accelerometer's bias as wide as cheap MEMS offsets span, not the filter's tight prior: a b_az of 3-5 times
+    # that prior (18-27 mg) alone, the gyros reading no rate, was taken for a grade on level roads
+    var_felt = (prm[A_LEVEL_ROAD_ACCEL_BIAS_SD] ** 2 + VERTICAL_ACCEL_NOISE**2 / n) * felt_per_baz**2
+    if not _grade_odds(seen, felt, var_seen, var_felt, rate_sd * rate_sd) > math.log(GRADE_TEST_ODDS):
+        return
+    precision = 1.0 / (rate_sd * rate_sd) + 1.0 / var_seen + 1.0 / var_felt
+    rate = (seen / var_seen + felt / var_felt) / precision  # the test's mean rate, both sensors' common part
+    sd = math.sqrt(1.0 / precision)
+    bq = (seen - rate + x[X_BR] * s) / c  # seen = rate + b_q c - b_r s
+    baz = (rate - felt) / felt_per_baz  # felt = rate - b_az / (u c)
+    # the pitch turned at that rate over the test's cycles, not at the filter's (the offset's running mean, over
+    # OFFSET_TIME, took about half of the test's share of it)
+    turned = (rate - st[ST_GRADE_TEST_RATE] / n) * n * dt
+    x[X_PITCH] += turned
+    st[ST_PITCH_LAG] += turned * (1.0 - 0.5 * GRADE_TEST_TIME / spd.OFFSET_TIME)
+    _set_uncorrelated(x, P, X_BQ, bq, sd / c)
+    _set_uncorrelated(x, P, X_BAZ, baz, sd / felt_per_baz)
+    _set_uncorrelated(x, P, X_PITCH_RATE, (q - bq) * c - (r - x[X_BR]) * s, sd)  # this cycle's, by the gyros
+    st[ST_GRADE_FOUND] = 1.0
+
+
+@njit(cache=True)
 def _clear_h(H: np.ndarray) -> None:
     for i in range(N_X):
         H[i] = 0.0
@@ -705,6 +781,9 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
         P[X_PITCH, X_PITCH] = INITIAL_PITCH_SD**2
         st[ST_LEVEL_PRIOR_DUE] = 1.0
         st[ST_LEVEL_FOR] = 0.0
+        st[ST_GRADE_TEST_DUE] = 1.0
+        for k in (ST_GRADE_TEST_SEEN, ST_GRADE_TEST_FELT, ST_GRADE_TEST_RATE, ST_GRADE_TEST_CYCLES, ST_GRADE_FOUND):
+            st[k] = 0.0
     st[ST_PSI_INIT] = 0.0
     st[ST_REJECTED] = 0.0
     st[ST_QUIET] = 0.0
@@ -945,6 +1024,11 @@ def attitude_step(
             felt = x[X_PITCH_RATE] - nu_z / (u1 * c)
             if math.isfinite(felt):
                 st[ST_PITCH_RATE_FELT] += dt / PITCH_RATE_SEEN_TIME * (felt - st[ST_PITCH_RATE_FELT])
+                if st[ST_GRADE_TEST_DUE] != 0.0:  # the start's raw rates: the biases the filter took added back
+                    st[ST_GRADE_TEST_SEEN] += prev[PREV_Q] * c - prev[PREV_R] * s
+                    st[ST_GRADE_TEST_FELT] += felt - x[X_BAZ] / (u1 * c)
+                    st[ST_GRADE_TEST_RATE] += x[X_PITCH_RATE]
+                    st[ST_GRADE_TEST_CYCLES] += 1.0
         _update(st, H, nu_z, variance, gate)
         # the rotation axis is vertical but for the road's grade changing: pitch rate (q cos - r sin) = the state's
         phi = x[X_PHI]
@@ -972,6 +1056,7 @@ def attitude_step(
         _update(st, H, nu, ACCEL_OFFSET_NOISE**2, gate)
 
     if standstill and rates_ok:
+        st[ST_GRADE_TEST_DUE] = 0.0  # the biases are read here, where no grade turns the vehicle
         # the true rates and the sideslip are zero: the gyros read their biases, with the noise they show here if it is
         # more than the file's (an IMU noisier than the file's read its biases 5x more surely than they were)
         seen = ((p - x[X_BP]) ** 2 + (q - x[X_BQ]) ** 2 + (r - x[X_BR]) ** 2) / 3.0
@@ -1136,6 +1221,8 @@ def attitude_step(
             for b in (X_BAY, X_BAX, X_BAZ):
                 _widen_prior(st, b, prm[A_INIT_ACCEL_BIAS_SD] ** 2, prm[A_LEVEL_ROAD_ACCEL_BIAS_SD] ** 2)
             st[ST_LEVEL_PRIOR_DUE] = 0.0
+    if st[ST_GRADE_TEST_DUE] != 0.0:
+        _grade_start_test(st, prm, u, s, c, q_mid, r_mid, PITCH_RATE_SD * faster, dt)
     opening = seen2 / (seen2 + level * level) * max(1.0 - GRADE_DOUBT_CLOSES * lateral_doubt, 0.0)
     P[X_PITCH_RATE, X_PITCH_RATE] += pitch_rate_drive * opening
     # near the grip limit the tyres' forces, and with them the sideslip, move faster (a slide in a weave)
