@@ -303,7 +303,8 @@ OFFSET_DOUBT_LEVEL = 0.05  # m/s^2
 # (`dlc_100` on a 5 deg swing every 210 m: b_q 0.06 rad/s for 0.002, the pitch 3-4 deg off). But two sensors' biases
 # are independent and a grade's rate is common to both: over the first GRADE_TEST_TIME of riding the gyros' and the
 # vertical accelerometer's raw pitch rates (no bias taken off) are averaged and weighed under both hypotheses, biases
-# alone (each N(0, its prior)) or a grade's rate (N(0, a hilly road's spread), the same in both) beside them
+# alone (each N(0, its spread): the gyros' prior; the accelerometer's as wide as cheap MEMS offsets span) or a grade's
+# rate (N(0, a hilly road's spread), the same in both) beside them
 # (`_grade_odds`). Where the grade explains them GRADE_TEST_ODDS times better, the rate is the two readings' common part
 # and each bias the rest of its own sensor's, and the pitch is turned by what the rate turned it over the test
 # (`_grade_start_test`; docs/estimator.md, "The start on a changing grade"). A level road's biases do not agree like
