@@ -300,7 +300,7 @@ OFFSET_DOUBT_LEVEL = 0.05  # m/s^2
 # From nothing at speed on a grade that changes, the level road's prior on the grade's rate gives most of the gyros'
 # pitch rate to b_q (and the u pitch' the vertical accelerometer feels to b_az) within the first second, and nothing
 # takes it back before the rate changes: the pitch then runs degrees off for tens of seconds and the roll with it
-# (`dlc_100` on a 5 deg swing every 210 m: b_q 0.06 rad/s for 0.002, the pitch 3-4 deg off). But two sensors' biases
+# (`dlc_100` on a 5 deg swing every 210 m: b_q 0.06 rad/s for -0.002, the pitch 3-4.5 deg off). But two sensors' biases
 # are independent and a grade's rate is common to both: over the first GRADE_TEST_TIME of riding the gyros' and the
 # vertical accelerometer's raw pitch rates (no bias taken off) are averaged and weighed under both hypotheses, biases
 # alone (each N(0, its spread): the gyros' prior; the accelerometer's as wide as cheap MEMS offsets span) or a grade's
