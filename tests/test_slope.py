@@ -21,6 +21,7 @@ from ptw_rt.eval.evaluate import evaluate_ride, evaluate_scenario, ride_biases
 from ptw_rt.eval.matrix import cell_metrics
 from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
 from ptw_rt.sim.ride import parse_perturbations, simulate
+from ptw_rt.sim.sensors import road_grade
 
 
 @pytest.mark.slow
@@ -212,19 +213,25 @@ GRADE_FROM_THE_START = [
 ]
 
 
-def _pitch_doubt_per_cycle(ev) -> np.ndarray:
-    """The attitude stage's OUT_PITCH_DOUBT each cycle: the ride's Samples stepped again through a new estimator."""
-    from ptw_rt.core import attitude as att
+def _restep(ev, read) -> np.ndarray:
+    """`read(estimator)` after each cycle: the ride's Samples stepped again through a new estimator."""
     from ptw_rt.edge.cycle import build_runner
 
     runner = build_runner(DEFAULT_CONFIG, DEFAULT_DESIGN)
     estimates = np.zeros(L.ESTIMATES_SIZE)
-    doubt = np.empty(len(ev.samples))
-    for k, sample in enumerate(ev.samples):
+    kept = []
+    for sample in ev.samples:
         runner.estimator.step(sample, estimates)
-        doubt[k] = runner.estimator.outputs["attitude"][att.OUT_PITCH_DOUBT]
+        kept.append(read(runner.estimator))
     assert np.allclose(estimates, ev.estimates[-1], equal_nan=True)  # the same run as the evaluation's
-    return doubt
+    return np.array(kept)
+
+
+def _pitch_doubt_per_cycle(ev) -> np.ndarray:
+    """The attitude stage's OUT_PITCH_DOUBT each cycle."""
+    from ptw_rt.core import attitude as att
+
+    return _restep(ev, lambda estimator: estimator.outputs["attitude"][att.OUT_PITCH_DOUBT])
 
 
 @pytest.mark.slow
@@ -282,25 +289,8 @@ GRADE_CHANGING_FAST = [
 
 
 def _attitude_per_cycle(ev, *offsets: int) -> np.ndarray:
-    """The attitude stage's state at `offsets` each cycle: the ride's Samples stepped again through a new estimator."""
-    from ptw_rt.edge.cycle import build_runner
-
-    runner = build_runner(DEFAULT_CONFIG, DEFAULT_DESIGN)
-    estimates = np.zeros(L.ESTIMATES_SIZE)
-    kept = np.empty((len(ev.samples), len(offsets)))
-    for k, sample in enumerate(ev.samples):
-        runner.estimator.step(sample, estimates)
-        kept[k] = runner.estimator.states["attitude"][list(offsets)]
-    assert np.allclose(estimates, ev.estimates[-1], equal_nan=True)  # the same run as the evaluation's
-    return kept
-
-
-def _grade(ride, t: np.ndarray, speed: np.ndarray) -> np.ndarray:
-    """The road's grade under the vehicle [rad] at times t, as the simulator draws it."""
-    p = ride.perturbation
-    ridden = np.concatenate(([0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))))
-    phase = 2.0 * math.pi / p.road_slope_length * ridden
-    return math.radians(p.road_slope) + math.radians(p.road_slope_swing) * np.sin(phase)
+    """The attitude stage's state at `offsets` each cycle (one column each)."""
+    return _restep(ev, lambda estimator: estimator.states["attitude"][list(offsets)])
 
 
 @pytest.mark.slow
@@ -312,14 +302,14 @@ def test_from_nothing_on_a_grade_changing_fast_the_start_gives_its_rate_to_the_g
     turned it (docs/estimator.md, "The start on a changing grade")."""
     from ptw_rt.core import attitude as att
 
-    ride = simulate("dlc_100", seed=1887, perturbation=parse_perturbations(GRADE_CHANGING_FAST))
+    ride = simulate("dlc_100", seed=1887, perturbation=parse_perturbations(GRADE_CHANGING_FAST), keep_record=True)
     ev = evaluate_ride(ride)
     kept = _attitude_per_cycle(ev, att.ST_X + att.X_PITCH, att.ST_X + att.X_BQ, att.ST_GRADE_FOUND)
     pitch, bq, found = kept.T
     after_test = (ev.t > 2.0) & (ev.t < 6.0)
     assert found[-1] == 1.0
-    pitch_err = np.degrees(pitch - _grade(ride, ev.t, ev.truth["speed"]))
-    assert np.abs(pitch_err[after_test]).max() < 1.5  # 0.47-0.65 deg; 3.05-4.10 deg on the code before
+    pitch_err = np.degrees(pitch - road_grade(ride.perturbation, ride.record, ev.t)[0])
+    assert np.abs(pitch_err[after_test]).max() < 1.5  # 0.46-0.65 deg; 3.0-4.1 deg on the code before
     true_bq = ride_biases(ride)[1]  # -0.0017 rad/s
     assert np.abs(bq[after_test] - true_bq).max() < 0.007  # 0.0016-0.0043; 0.0026-0.0108 rad/s on the code before
 

@@ -630,9 +630,10 @@ def _grade_start_test(
     # the accelerometer's bias as wide as cheap MEMS offsets span, not the filter's tight prior: a b_az of 3-5 times
     # that prior (18-27 mg) alone, the gyros reading no rate, was taken for a grade on level roads
     var_felt = (prm[A_LEVEL_ROAD_ACCEL_BIAS_SD] ** 2 + VERTICAL_ACCEL_NOISE**2 / n) * felt_per_baz**2
-    if not _grade_odds(seen, felt, var_seen, var_felt, rate_sd * rate_sd) > math.log(GRADE_TEST_ODDS):
+    var_rate = rate_sd * rate_sd
+    if not _grade_odds(seen, felt, var_seen, var_felt, var_rate) > math.log(GRADE_TEST_ODDS):
         return
-    precision = 1.0 / (rate_sd * rate_sd) + 1.0 / var_seen + 1.0 / var_felt
+    precision = 1.0 / var_rate + 1.0 / var_seen + 1.0 / var_felt
     rate = (seen / var_seen + felt / var_felt) / precision  # the test's mean rate, both sensors' common part
     sd = math.sqrt(1.0 / precision)
     bq = (seen - rate + x[X_BR] * s) / c  # seen = rate + b_q c - b_r s
