@@ -46,6 +46,10 @@ def _version() -> str:
 
 
 def _analyze(args) -> int:
+    if getattr(args, "payload", None) is not None:
+        from ptw_rt.analysis.payload import run_analyze_payload
+
+        return run_analyze_payload(args)
     if getattr(args, "outputs", None):
         from ptw_rt.design.output_sets import run_analyze_outputs
 
@@ -162,6 +166,16 @@ def _speeds(text: str) -> list[float]:
     return values
 
 
+def _payload_kg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a mass in kg, got {text!r}") from None
+    if not -150.0 <= value <= 300.0:  # nan included; the range of the config's vehicle.added_mass
+        raise argparse.ArgumentTypeError("the payload must be within [-150, 300] kg")
+    return value
+
+
 def _file_name(text: str) -> Path:
     """A file name argument held to the rule of ``runtime.state_file`` (``schema.check_path_text``): ``--state-file ""``
     was the current directory (warned about as a directory the daemon could not read), a NUL a traceback."""
@@ -215,6 +229,14 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("phi_tau", "tau", "tau_state"),
         default=None,
         help="with --outputs: unknown inputs [phi, tau] (roll removed), tau (roll measured), tau_state (roll a state)",
+    )
+    p.add_argument(
+        "--payload",
+        type=_payload_kg,
+        default=None,
+        metavar="KG",
+        help="can the sensors tell a payload of KG from softer tyres? chi-square of the linear model with the rider's "
+        "torque unknown (docs/estimator.md, 'The payload')",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.set_defaults(handler=_analyze)

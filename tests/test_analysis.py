@@ -102,3 +102,44 @@ def test_bad_speeds_argument():
         [sys.executable, "-m", "ptw_rt.cli", "analyze", "--speeds", "fast"], capture_output=True, text=True
     )
     assert proc.returncode == 2 and "comma-separated" in proc.stderr
+
+
+# ---- the payload against softer tyres (ptw_rt.analysis.payload; docs/estimator.md, "The payload")
+
+SHORT_RIDE_S = 5.0  # of the study's 10 s: the same shape of answer at a quarter of the cost
+
+
+def _payload_ride(settings, model: str, added_mass: float) -> dict:
+    from ptw_rt.analysis.payload import compare, loaded, measurement_noise
+
+    p = settings.vehicle
+    a = loaded(p, added_mass, model)
+    return compare(p, a, 30.0, 0.28, measurement_noise(settings.estimator.kalman), duration=SHORT_RIDE_S)
+
+
+def test_the_file_against_itself_leaves_nothing_unexplained(settings):
+    r = _payload_ride(settings, "point_mass", 0.0)
+    assert abs(r["best_tyre_scale"] - 1.0) < 0.01
+    assert r["chi2_best_tyres"] < 1e-3 * r["chi2_reference"]
+    assert r["chi2_reference"] > 100.0  # the ride does tell the file's tyres from 15 % softer ones
+
+
+def test_a_heavier_rider_of_the_same_build_reads_as_tyres_scaled_by_the_mass_ratio(settings):
+    """Every force row scales with the mass; where the inertias grow with it too, what is left to tell the mass
+    from the tyres is a few per cent of a tyre error (a real rider); a point mass that adds no inertia leaves more
+    in the gyros (the simulator's payload)."""
+    p = settings.vehicle
+    grown = _payload_ride(settings, "rear_frame_grown", 50.0)
+    point = _payload_ride(settings, "point_mass", 50.0)
+    assert abs(grown["best_tyre_scale"] - p.mass / (p.mass + 50.0)) < 0.03
+    assert grown["equivalent_tyre_error_pct"] < 5.0
+    assert point["chi2_best_tyres"] > 3.0 * grown["chi2_best_tyres"]
+    gyros = point["chi2_best_tyres_per_output"]
+    assert gyros["yaw_rate"] + gyros["roll_rate"] > 0.5 * point["chi2_best_tyres"]
+
+
+def test_analyze_payload_refuses_a_mass_beyond_the_configs_range():
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt.cli", "analyze", "--payload", "400"], capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and "[-150, 300] kg" in proc.stderr and "Traceback" not in proc.stderr

@@ -28,7 +28,7 @@ from scipy.linalg import solve_discrete_are
 
 from ptw_rt.design.discretize import zoh
 from ptw_rt.model.parameters import VehicleParameters
-from ptw_rt.model.sharp import descriptor, state_space
+from ptw_rt.model.sharp import descriptor, sensor_outputs, state_space
 from ptw_rt.settings import KalmanTuning
 
 N_X = 9
@@ -40,12 +40,9 @@ FORCE_STATES = [6, 7]  # F_yf, F_yr
 
 
 def output_matrix(p: VehicleParameters) -> np.ndarray:
+    """The sensors' outputs (`ptw_rt.model.sharp.sensor_outputs`) of the augmented state: the torque reads on none."""
     C = np.zeros((N_Y, N_X))
-    C[0, 1] = 1.0
-    C[1, 3] = 1.0
-    C[2, 4] = 1.0
-    C[3, 6] = C[3, 7] = 1.0 / p.mass
-    C[4, 0] = 1.0
+    C[:, :TAU] = sensor_outputs(p)
     return C
 
 

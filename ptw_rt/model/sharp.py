@@ -152,6 +152,22 @@ def state_space(p: VehicleParameters, u: float) -> tuple[np.ndarray, np.ndarray]
     return m.A(u), m.B.copy()
 
 
+# what the sensors read of the state, in this order: the encoder's steer, the gyros' yaw and roll rates, the
+# lateral acceleration (the tyres' forces over the mass) and the roll (the attitude filter's, fused as a measurement)
+SENSOR_OUTPUTS = ("steer", "yaw_rate", "roll_rate", "lat_accel", "roll")
+
+
+def sensor_outputs(p: VehicleParameters) -> np.ndarray:
+    """C (len(SENSOR_OUTPUTS) x N_STATES): y = C x, the fusion filters' measurements of Sharp's state."""
+    C = np.zeros((len(SENSOR_OUTPUTS), N_STATES))
+    C[0, DELTA] = 1.0
+    C[1, R] = 1.0
+    C[2, PHI_DOT] = 1.0
+    C[3, FYF] = C[3, FYR] = 1.0 / p.mass
+    C[4, PHI] = 1.0
+    return C
+
+
 # ----- seed 000's rearranged systems ----------------------------------------
 REDUCED_STATE_NAMES = STATE_NAMES[1:]  # phi removed from the state
 R_DELTA, R_VY, R_R, R_PHI_DOT, R_DELTA_DOT, R_FYF, R_FYR = range(7)
