@@ -437,6 +437,10 @@ class KalmanTuning:
     published_force_noise: tuple[float, float] = (1.0, 1.0)
     published_torque_noise: float = 1.0  # ... and on their rider torque's random walk
 
+    def measurement_sd(self) -> tuple[float, float, float, float, float]:
+        """The measurements' standard deviations in the order of `ptw_rt.model.sharp.SENSOR_OUTPUTS`."""
+        return (self.steer_noise, self.yaw_rate_noise, self.roll_rate_noise, self.lateral_accel_noise, self.roll_noise)
+
 
 @dataclass(frozen=True)
 class TyreBankTuning:

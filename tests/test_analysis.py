@@ -110,11 +110,11 @@ SHORT_RIDE_S = 5.0  # of the study's 10 s: the same shape of answer at a quarter
 
 
 def _payload_ride(settings, model: str, added_mass: float) -> dict:
-    from ptw_rt.analysis.payload import compare, loaded, measurement_noise
+    from ptw_rt.analysis.payload import compare, loaded
 
     p = settings.vehicle
     a = loaded(p, added_mass, model)
-    return compare(p, a, 30.0, 0.28, measurement_noise(settings.estimator.kalman), duration=SHORT_RIDE_S)
+    return compare(p, a, 30.0, 0.28, np.array(settings.estimator.kalman.measurement_sd()), duration=SHORT_RIDE_S)
 
 
 def test_the_file_against_itself_leaves_nothing_unexplained(settings):

@@ -40,19 +40,6 @@ VALID_TOLERANCE = 0.15  # the stiffness VALID's promise (issue #12): the referen
 PAYLOAD_MODELS = ("point_mass", "rear_frame_grown")
 
 
-def measurement_noise(tuning: KalmanTuning) -> np.ndarray:
-    """The fusion filters' measurement standard deviations, in SENSOR_OUTPUTS' order."""
-    return np.array(
-        [
-            tuning.steer_noise,
-            tuning.yaw_rate_noise,
-            tuning.roll_rate_noise,
-            tuning.lateral_accel_noise,
-            tuning.roll_noise,
-        ]
-    )
-
-
 def markov_parameters(p: VehicleParameters, u: float, n: int) -> np.ndarray:
     """(n, outputs): the outputs k + 1 steps after a unit torque held for one step (zero-order hold, exact)."""
     A, B = state_space(p, u)
@@ -147,7 +134,7 @@ def compare(
 
 
 def payload_study(p: VehicleParameters, tuning: KalmanTuning, added_mass: float, rides=RIDES) -> dict[str, Any]:
-    noise = measurement_noise(tuning)
+    noise = np.array(tuning.measurement_sd())
     return {
         "vehicle": p.name,
         "mass_kg": round(p.mass, 2),

@@ -87,15 +87,7 @@ def design_point_with_innovation(
     scale[FORCE_STATES] *= force_noise  # the tyre forces' freedom from the tyre model (front, rear)
     Q[:8, :8] = np.diag(tuning.process_noise * scale**2 * dt)
     Q[TAU, TAU] = (torque_noise * tuning.rider_torque_rate) ** 2 * dt
-    R = np.diag(
-        [
-            tuning.steer_noise**2,
-            tuning.yaw_rate_noise**2,
-            tuning.roll_rate_noise**2,
-            tuning.lateral_accel_noise**2,
-            tuning.roll_noise**2,
-        ]
-    )
+    R = np.diag(np.square(tuning.measurement_sd()))
     C = output_matrix(p)
     P = solve_discrete_are(Phi.T, C.T, Q, R)
     S = C @ P @ C.T + R
