@@ -143,3 +143,22 @@ def test_analyze_payload_refuses_a_mass_beyond_the_configs_range():
         [sys.executable, "-m", "ptw_rt.cli", "analyze", "--payload", "400"], capture_output=True, text=True
     )
     assert proc.returncode == 2 and "[-150, 300] kg" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_analyze_payload_a_vehicle_cannot_take_is_one_line(tmp_path):
+    from ptw_rt.paths import DEFAULT_CONFIG
+
+    text = DEFAULT_CONFIG.read_text(encoding="utf-8")
+    light = text.replace("    mass: 292.2 ", "    mass: 140.0 ").replace(
+        "  front_vertical_load: 1817.7 ", "  front_vertical_load: 700.0 "
+    )
+    assert light != text and light.count("140.0") == 1 and light.count("700.0 ") == 1
+    config = tmp_path / "light.yaml"
+    config.write_text(light, encoding="utf-8")
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptw_rt.cli", "analyze", "--payload", "-150", "--config", str(config)],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2 and "too little of rear_frame.mass" in proc.stderr
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1

@@ -173,10 +173,14 @@ def format_study(result: dict[str, Any]) -> str:
 
 
 def run_analyze_payload(args) -> int:
+    from ptw_rt.errors import UserFacingError
     from ptw_rt.output import emit
     from ptw_rt.settings import load_settings
 
     settings = load_settings(args.config)
-    result = payload_study(settings.vehicle, settings.estimator.kalman, args.payload)
+    try:
+        result = payload_study(settings.vehicle, settings.estimator.kalman, args.payload)
+    except ValueError as exc:  # a payload the vehicle cannot take (`VehicleParameters.with_added_mass`)
+        raise UserFacingError(f"{args.config}: --payload {args.payload:g}: {exc}") from None
     emit(result, args.json, format_study(result))
     return 0
