@@ -47,7 +47,7 @@ def _version() -> str:
 
 def _analyze(args) -> int:
     if getattr(args, "payload", None) is not None:
-        from ptw_rt.analysis.payload import run_analyze_payload
+        from ptw_rt.design.payload import run_analyze_payload
 
         return run_analyze_payload(args)
     if getattr(args, "outputs", None):

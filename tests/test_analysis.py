@@ -104,13 +104,13 @@ def test_bad_speeds_argument():
     assert proc.returncode == 2 and "comma-separated" in proc.stderr
 
 
-# ---- the payload against softer tyres (ptw_rt.analysis.payload; docs/estimator.md, "The payload")
+# ---- the payload against softer tyres (ptw_rt.design.payload; docs/estimator.md, "The payload")
 
 SHORT_RIDE_S = 5.0  # of the study's 10 s: the same shape of answer at a quarter of the cost
 
 
 def _payload_ride(settings, model: str, added_mass: float) -> dict:
-    from ptw_rt.analysis.payload import compare, loaded
+    from ptw_rt.design.payload import compare, loaded
 
     p = settings.vehicle
     a = loaded(p, added_mass, model)

@@ -16,9 +16,9 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.linalg import expm
 from scipy.optimize import minimize_scalar
 
+from ptw_rt.design.discretize import zoh
 from ptw_rt.model.parameters import VehicleParameters
 from ptw_rt.model.sharp import SENSOR_OUTPUTS, kmh, sensor_outputs, state_space
 from ptw_rt.settings import KalmanTuning
@@ -42,13 +42,7 @@ PAYLOAD_MODELS = ("point_mass", "rear_frame_grown")
 
 def markov_parameters(p: VehicleParameters, u: float, n: int) -> np.ndarray:
     """(n, outputs): the outputs k + 1 steps after a unit torque held for one step (zero-order hold, exact)."""
-    A, B = state_space(p, u)
-    m = A.shape[0]
-    M = np.zeros((m + 1, m + 1))
-    M[:m, :m] = A
-    M[:m, m] = B
-    E = expm(M * DT)
-    Ad, Bd = E[:m, :m], E[:m, m]
+    Ad, Bd = zoh(*state_space(p, u), DT)
     C = sensor_outputs(p)
     h = np.empty((n, C.shape[0]))
     x = Bd.copy()
@@ -117,13 +111,13 @@ def compare(
     best = minimize_scalar(chi2, bounds=SCALE_SEARCH, method="bounded", options={"xatol": 1e-3})
     k = float(best.x)
     parts = unexplained(y, response_matrix(p.scaled(stiffness=k), u, n, noise), outputs)
-    y_file = response_matrix(p, u, n, noise) @ tau
+    T_file = response_matrix(p, u, n, noise)  # the file's tyres: what vehicle a is told from, and the reference's
     T_soft = response_matrix(p.scaled(stiffness=1.0 - VALID_TOLERANCE), u, n, noise)
-    reference = float(unexplained(y_file, T_soft, outputs).sum())
+    reference = float(unexplained(T_file @ tau, T_soft, outputs).sum())
     return {
         "speed_kmh": speed_kmh,
         "manoeuvre_hz": frequency_hz,
-        "chi2_file_tyres": round(chi2(1.0), 1),
+        "chi2_file_tyres": round(float(unexplained(y, T_file, outputs).sum()), 1),
         "best_tyre_scale": round(k, 3),
         "chi2_best_tyres": round(float(parts.sum()), 1),
         "chi2_best_tyres_per_output": {name: round(float(v), 1) for name, v in zip(SENSOR_OUTPUTS, parts, strict=True)},
