@@ -119,7 +119,7 @@ STATE = Layout(
     pitch_lag=1,  # rad, how far the pitch has turned beyond its running mean over the speed stage's offset window
     pitch_rate_seen=1,  # rad/s, the gyros' pitch rate (q cos(roll) - r sin(roll), bias-corrected), low-passed
     pitch_rate_felt=1,  # rad/s, the pitch rate the vertical accelerometer implies (u pitch'), low-passed
-    turn_accel_mean=1,  # m/s^2, what a turn adds along x at the IMU (-v_y r - x_imu r^2), over the offset's window
+    turn_accel_mean=1,  # m/s^2, what a turn adds along x at the IMU (`turn_accel_along`), over the offset's window
     offset_doubt=1,  # m/s^2, running mean of the longitudinal offset's innovations over OFFSET_DOUBT_TIME
     level_for=1,  # s the road has been seen level, riding (LEVEL_ROAD_TIME)
     # the start's test of a grade's rate (`_grade_start_test`), armed by a start from nothing:
@@ -285,7 +285,7 @@ GRADE_MAX_ROLL_COS = 0.5  # ... and leaning beyond 60 deg (a fall) its part alon
 VERTICAL_ACCEL_NOISE = 0.2  # m/s^2 per cycle (the simulator's; a real engine's vibration is not measured here)
 # The speed stage's longitudinal offset, g sin(pitch) + b_ax over its last 3 s against GPS, is a measurement of
 # their sum; a turn tells the pitch from the accelerometer's bias (the roll drifts by tan(pitch) r_ground). The
-# offset is a running mean (its pitch lags by `pitch_lag`, a turn's -v_y r - x_imu r^2 in it by `turn_accel_mean`)
+# offset is a running mean (its pitch lags by `pitch_lag`, a turn's part in it by `turn_accel_mean`)
 # whose error is correlated over seconds, so each cycle's is taken with this noise (its information over 3 s is that
 # of one 0.06 m/s^2 reading; 5 before the lag and the turn's part were modelled, 0.5 - 5 no better since)
 ACCEL_OFFSET_NOISE = 1.0  # m/s^2 per cycle
@@ -571,6 +571,41 @@ def pitch_doubted(out: np.ndarray) -> bool:
     """The longitudinal accelerometer doubts the pitch (the stage's OUT_PITCH_DOUBT >= 1): the tyres do not learn
     on what such a pitch bends, and EST_TireConfidence.PitchDoubted says so."""
     return out[OUT_PITCH_DOUBT] >= 1.0
+
+
+@njit(cache=True)
+def turn_accel_along(
+    v_y: float, yaw_rate: float, yaw_accel: float, roll: float, roll_rate: float, forward: float, height: float
+) -> float:
+    """m/s^2: what a turn adds to the IMU's specific force along the body's x axis beyond the speed's rate. In the
+    frame that yaws with the vehicle the IMU sits `forward` of the reference point and, leaned, height sin(roll)
+    beside it; a point there accelerates along x by -v_y r - forward r^2 - r' height sin(roll) - 2 r height
+    cos(roll) roll' (the last two: the lean carries the IMU sideways, and its rate moves it). A 30 km/h slalom makes
+    them 0.1-0.15 m/s^2 at 2x its frequency, which integrated as the speed's rate read it 1 % low at every lean
+    (docs/estimator.md, "Speed")."""
+    return (
+        -v_y * yaw_rate
+        - forward * yaw_rate * yaw_rate
+        - yaw_accel * height * math.sin(roll)
+        - 2.0 * yaw_rate * height * math.cos(roll) * roll_rate
+    )
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def turn_accel_of(out: np.ndarray, prm: np.ndarray, yaw_accel: float) -> float:
+    """`turn_accel_along` at the stage's outputs (its last cycle's), with the ground yaw rate's rate `yaw_accel`
+    [rad/s^2]; 0 while the stage has none."""
+    if out[OUT_OK] == 0.0:
+        return 0.0
+    return turn_accel_along(
+        out[OUT_VY],
+        out[OUT_YAW_RATE],
+        yaw_accel,
+        out[OUT_ROLL],
+        out[OUT_ROLL_RATE],
+        prm[A_IMU_FORWARD],
+        prm[A_IMU_HEIGHT],
+    )
 
 
 @njit(cache=True)
@@ -1160,7 +1195,9 @@ def attitude_step(
     x[X_AV] *= 1.0 - dt / ta
     x[X_PITCH] += dt * x[X_PITCH_RATE]
     st[ST_PITCH_LAG] += dt * (x[X_PITCH_RATE] - st[ST_PITCH_LAG] / spd.OFFSET_TIME)
-    turn_accel = -x[X_VY] * rg1 - prm[A_IMU_FORWARD] * rg1 * rg1
+    turn_accel = turn_accel_along(
+        x[X_VY], rg1, st[ST_YAW_ACCEL], phi_mid, p_mid - bp, prm[A_IMU_FORWARD], prm[A_IMU_HEIGHT]
+    )
     st[ST_TURN_ACCEL_MEAN] += dt / spd.OFFSET_TIME * (turn_accel - st[ST_TURN_ACCEL_MEAN])
     faster = u / GRADE_REFERENCE_SPEED if u > GRADE_REFERENCE_SPEED else 1.0  # (a NaN speed: the reference's)
     pitch_rate_decay = dt * faster / PITCH_RATE_TIME

@@ -233,9 +233,11 @@ def packed_step(
     o_stf = _out(s, si, STIFFNESS)
     o_sup = _out(s, si, SUPERVISOR)
     inp.inputs_stage(sample, _state(s, si, INPUTS), v1(t, ti, INPUTS), o_in)
-    # the IMU's pitch of the cycle before (the attitude stage runs after the speed stage, which it needs)
+    # the IMU's pitch and what the turn adds along x, of the cycle before (the attitude stage runs after the speed
+    # stage, which it needs)
     pitch_before = o_att[att.OUT_PITCH] if o_att[att.OUT_OK] != 0.0 else 0.0
-    spd.speed_stage(_state(s, si, SPEED), v1(t, ti, SPEED), o_spd, o_in, pitch_before)
+    turn_before = att.turn_accel_of(o_att, v1(t, ti, ATTITUDE), o_cnd[cnd.OUT_YAW_ACCEL])
+    spd.speed_stage(_state(s, si, SPEED), v1(t, ti, SPEED), o_spd, o_in, pitch_before, turn_before)
     att.attitude_stage(_state(s, si, ATTITUDE), v1(t, ti, ATTITUDE), o_att, o_in, o_spd)
     cnd.conditioning_stage(sample, _state(s, si, CONDITIONING), v1(t, ti, CONDITIONING), o_cnd, o_in, o_spd, o_att)
     dia.diagnostics_stage(

@@ -136,15 +136,15 @@ def speed_step(
     gain: float,
     bias_gain: float,
     latency_samples: int,
-    gravity_along: float = 0.0,
+    beyond_rate: float = 0.0,
 ) -> float:
     """One 10 ms step of the speed filter; returns the speed estimate [m/s] (never negative).
 
     `gps_new` marks a fix that arrived this cycle; `gps_ok` that it is usable (2D/3D fix).
     The fix describes the speed `latency_samples` cycles ago: the innovation is taken
-    against the prediction stored then and applied to the present estimate. `gravity_along`: what the
-    accelerometer reads of gravity (g sin of the IMU's pitch), taken out before the reading is integrated; the
-    offset's running mean (OUTPUTS accel_offset) is of the reading as it is.
+    against the prediction stored then and applied to the present estimate. `beyond_rate`: what the
+    accelerometer reads beyond the speed's rate (gravity's g sin of the IMU's pitch, a turn's part), taken out before
+    the reading is integrated; the offset's running mean (OUTPUTS accel_offset) is of the reading as it is.
     """
     n_ring = state.shape[0] - SPD_RING0
     if state[SPD_INIT] == 0.0:
@@ -160,7 +160,7 @@ def speed_step(
             state[SPD_RING0 + k] = gps_speed
         state[SPD_INIT] = 1.0
     a = accel_x if math.isfinite(accel_x) else 0.0
-    u = state[SPD_U] + (a - gravity_along - state[SPD_BIAS]) * dt
+    u = state[SPD_U] + (a - beyond_rate - state[SPD_BIAS]) * dt
     state[SPD_MEAN_ACCEL] += dt / OFFSET_TIME * (a - state[SPD_MEAN_ACCEL])
     head = int(state[SPD_HEAD])
     state[SPD_SINCE] += dt
@@ -213,13 +213,21 @@ def speed_step(
 
 
 @njit(cache=True)
-def speed_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.ndarray, pitch: float = 0.0) -> None:
-    """One cycle from the inputs stage's outputs (accelerometer x, GPS speed and whether it is new) and the IMU's
+def speed_stage(
+    st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.ndarray, pitch: float = 0.0, turn_along: float = 0.0
+) -> None:
+    """One cycle from the inputs stage's outputs (accelerometer x, GPS speed and whether it is new), the IMU's
     pitch as the attitude stage last estimated it [rad] (0 while it has none): on a road whose grade changes, the
     accelerometer's g sin(pitch) changes faster than the speed's bias learns (a 5 deg swing every 400 m at 30 km/h:
-    the speed 0.15 m/s off, which the tyres read as slip)."""
+    the speed 0.15 m/s off, which the tyres read as slip); and what a turn adds to that reading along x [m/s^2]
+    (`attitude.turn_accel_along` at the attitude stage's last outputs, 0 while it has none): a slalom's leans make
+    it swing faster than GPS corrects, and integrated as the speed's rate it read the speed 1 % low at every lean,
+    which the tyre filters read as stiffer tyres (docs/estimator.md, "Speed"). Both are taken out of the reading
+    before it is integrated; the offset's running mean (OUT_ACCEL_OFFSET) is of the reading as it is."""
     accel_x = inputs[inp.OUT_RAW + inp.RAW_AX] if inputs[inp.OUT_ACCEL_OK] != 0.0 else 0.0
-    gravity_along = prm[P_G] * math.sin(pitch) if math.isfinite(pitch) else 0.0
+    beyond_rate = prm[P_G] * math.sin(pitch) if math.isfinite(pitch) else 0.0
+    if math.isfinite(turn_along):
+        beyond_rate += turn_along
     gps_ok = inputs[inp.OUT_GPS_OK] != 0.0
     out[OUT_U] = speed_step(
         st,
@@ -231,7 +239,7 @@ def speed_stage(st: np.ndarray, prm: np.ndarray, out: np.ndarray, inputs: np.nda
         prm[P_GAIN],
         prm[P_BIAS_GAIN],
         int(prm[P_LATENCY_SAMPLES]),
-        gravity_along,
+        beyond_rate,
     )
     out[OUT_KNOWN] = 1.0 if st[SPD_INIT] != 0.0 else 0.0
     out[OUT_GPS_AGE] = st[SPD_SINCE]
