@@ -459,10 +459,14 @@ def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _warning_line
     parser = build_parser()
     args = parser.parse_args(argv)
+    from ptw_rt.service.logs import setup_command_logging
+    from ptw_rt.untrusted import one_line
+
+    setup_command_logging()
     try:
         return int(args.handler(args) or 0)
     except UserFacingError as exc:
-        print(f"ptw-rt {args.command}: {exc}", file=sys.stderr)
+        print(f"ptw-rt {args.command}: {one_line(str(exc))}", file=sys.stderr)
         return int(getattr(exc, "exit_code", 2))
     except ModuleNotFoundError as exc:
         message = missing_extra(exc)

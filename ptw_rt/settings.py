@@ -485,6 +485,14 @@ class TyreBankTuning:
     saturation_friction: float
     saturation_uncertainty: float
 
+    def scales(self) -> np.ndarray:
+        """The hypotheses: powers of `step` from min_scale to max_scale; 1 (the nominal tyres) is always one. The
+        design is made on them and a design file's are checked against them (`ptw_rt.design.file`)."""
+        ratio = math.log(self.step)
+        lo = math.ceil(math.log(self.min_scale) / ratio - 1e-9)
+        hi = math.floor(math.log(self.max_scale) / ratio + 1e-9)
+        return np.exp(np.arange(lo, hi + 1) * ratio)
+
 
 @dataclass(frozen=True)
 class PlausibilityTuning:

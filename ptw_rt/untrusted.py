@@ -30,8 +30,10 @@ __all__ = [
     "decode_utf8",
     "excerpt",
     "file_kind",
+    "one_line",
     "open_regular",
     "read_bounded",
+    "same_file",
     "short_text",
 ]
 
@@ -67,6 +69,22 @@ def check_replaceable(path: str | Path) -> None:
         return
     if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
         raise OSError(errno.EEXIST, f"exists and is {file_kind(mode)}, not a file to replace", str(path))
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether two paths name one file: the same path once symlinks are followed, or the same device and inode (a
+    hard link, a bind mount: writing one would truncate the other while it is read). Never raises: a path that
+    cannot be resolved (a symlink loop, a component that is not a directory) is compared as written, made
+    absolute (``Path.resolve`` raised RuntimeError on a loop, a traceback in every command that compared paths)."""
+    try:
+        if os.path.samefile(a, b):
+            return True
+    except (OSError, ValueError):  # one does not exist (an output not yet written), a loop, a NUL in the name
+        pass
+    try:
+        return os.path.realpath(a) == os.path.realpath(b)
+    except (OSError, ValueError):
+        return os.path.abspath(a) == os.path.abspath(b)
 
 
 def _size(n: int) -> str:
@@ -219,6 +237,13 @@ def file_size(fh: IO[bytes]) -> int:
         return os.fstat(fh.fileno()).st_size
     except (OSError, ValueError):
         return 0
+
+
+def one_line(text: str, limit: int = 2000) -> str:
+    """A message as one line, its own spaces kept: control characters (a newline in a file's name forged a line
+    of its own, an ESC sequence is a terminal command) and non-ASCII escaped, at most ``limit`` chars."""
+    text = str(text).encode("ascii", "backslashreplace").decode("ascii").translate(_CONTROL_ESCAPES)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def short_text(text: str, limit: int = 120) -> str:

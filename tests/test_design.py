@@ -335,3 +335,23 @@ def test_a_vehicle_for_which_case_2_is_never_detectable_is_designed_and_estimate
     assert np.all(ev.estimates[:, L.E_ROLL_UIHOSMO] == 0.0)
     roll_err = np.degrees(ev.estimates[ev.mask, L.E_ROLL] - ev.truth["roll"][ev.mask])
     assert np.sqrt(np.mean(roll_err**2)) < 0.5
+
+
+@pytest.mark.parametrize(("member", "factor"), [("ad_theta_nominal", 10.0), ("ad_theta_bound", 1e5), ("tb_scale", 1.5)])
+def test_a_design_whose_hash_is_right_but_whose_bounds_are_not_is_refused(tmp_path, member, factor):
+    """The nominal stiffness, its deviation bound and the tyre hypotheses bound what a state file may restore. A
+    design file with the configuration's hash and those values edited passed every check, and the daemon restored
+    a learned stiffness ten times the file's from a state file (found by fuzzing, 2026-12-07)."""
+    from ptw_rt.design.file import DesignFileError, load_design_for
+    from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
+    from ptw_rt.settings import load_settings
+
+    settings = load_settings(DEFAULT_CONFIG)
+    with np.load(DEFAULT_DESIGN, allow_pickle=False) as shipped:
+        members = {name: shipped[name] for name in shipped.files}
+    load_design_for(settings, DEFAULT_DESIGN)  # the shipped one passes
+    members[member] = members[member] * factor
+    edited = tmp_path / "edited.npz"
+    np.savez_compressed(edited, **members)
+    with pytest.raises(DesignFileError, match=f"its {member} .* is not what the configuration makes"):
+        load_design_for(settings, edited)

@@ -3,6 +3,7 @@ own writers replays to the same estimates as its candump original; sniffing; not
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import math
@@ -849,3 +850,50 @@ def test_an_output_named_gz_is_written_compressed(ride, replays, ext, tmp_path):
         assert gzip.decompress(packed.read_bytes()) == replays["candump"][0].read_bytes()
     assert _frames(packed)[0] == _frames(plain)[0]
     assert len(list(can.LogReader(str(packed)))) == len(list(can.LogReader(str(plain))))
+
+
+def test_a_text_record_cut_mid_write_is_counted_not_read_as_other_bytes(ride, tmp_path):
+    """python-can takes the data bytes a line has (a logger killed mid-write: DLC 7 with 3 bytes) and reads a byte
+    cut to one hex digit as that digit ('FC 8' for 'FC 8F'); such a record is a malformed line, as candump's odd
+    number of hex digits is (found by fuzzing: accepted, uncounted, and the last cycle's estimate changed)."""
+    for fmt, cut in (
+        ("asc", lambda line: line.rsplit(None, 1)[0] + " " + line.rsplit(None, 1)[1][0]),  # last byte, one digit
+        ("asc", lambda line: " ".join(line.split()[:-3])),  # three bytes short of its DLC
+        ("trc", lambda line: " ".join(line.split()[:-2])),
+        ("csv", lambda line: ",".join(line.split(",")[:-1] + [base64.b64encode(b"\x01\x02").decode()])),
+    ):
+        lines = ride[fmt].read_text().splitlines()
+        k = next(i for i in range(len(lines) // 2, len(lines)) if _data_line(fmt, lines[i]))
+        path = tmp_path / f"cut.{fmt}"
+        path.write_text("\n".join(lines[:k] + [cut(lines[k])] + lines[k + 1 :]) + "\n")
+        good, _ = _frames(ride[fmt])
+        got, stats = _frames(path)
+        assert stats.malformed == 1 and len(got) == len(good) - 1, (fmt, lines[k], cut(lines[k]), stats.rejected)
+
+
+def _data_line(fmt: str, line: str) -> bool:
+    """A frame record of at least four data bytes."""
+    if fmt == "csv":
+        fields = line.split(",")
+        return len(fields) == 7 and fields[5].isdigit() and int(fields[5]) >= 4
+    words = line.split()
+    if fmt == "asc":
+        return len(words) > 8 and words[4] == "d" and int(words[5], 16) >= 4
+    return len(words) > 8 and not line.startswith(";") and words[-5:] and all(len(w) == 2 for w in words[-4:])
+
+
+def test_a_python_can_text_line_with_a_control_character_between_its_bytes_is_one_malformed_line(ride, tmp_path):
+    """The line pattern's \\s takes \\x1c-\\x1f and non-ASCII spaces, which bytes.fromhex refuses: a ValueError that
+    escaped as a traceback (found by fuzzing)."""
+    text = tmp_path / "ride.txt"  # python-can's text: str(Message) a line (can.Printer's)
+    text.write_text("\n".join(str(m) for m in can.LogReader(str(ride["candump"]))) + "\n")
+    lines = text.read_text().splitlines()
+    pair = re.compile(r"DL:\s+\d+\s+[0-9a-fA-F]{2}( )[0-9a-fA-F]{2}")
+    k = next(i for i in range(len(lines) // 2, len(lines)) if pair.search(lines[i]))
+    at = pair.search(lines[k]).start(1)
+    bad = lines[k][:at] + "\x1c" + lines[k][at + 1 :]
+    path = tmp_path / "ctrl.txt"
+    path.write_text("\n".join(lines[:k] + [bad] + lines[k + 1 :]) + "\n")
+    good, _ = _frames(text)
+    got, stats = _frames(path)
+    assert stats.malformed == 1 and len(got) == len(good) - 1

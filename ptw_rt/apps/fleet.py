@@ -33,6 +33,7 @@ __all__ = ["FLEET_COLUMNS", "fleet_row", "read_list_file", "run_jobs", "write_fl
 
 MAX_LIST_BYTES = 16 * 1024 * 1024  # a list file of ~100 000 paths
 MAX_LIST_ENTRIES = 200_000
+MAX_PATH_CHARS = 4096  # PATH_MAX on Linux: a longer entry names no file
 DASK_CONNECT_TIMEOUT_S = 10.0  # dask's connect timeout; the handshake gets 5 s more
 SENSOR_FAULT_REASONS = ("sensor_stale", "out_of_range", "decode_errors", "counter_jumps", "gyro_step")
 
@@ -80,6 +81,8 @@ def read_list_file(path: Path) -> list[Path]:
             continue
         if "\0" in entry:
             raise ListFileError(f"{path}:{number}: a path with a NUL character")
+        if len(entry) > MAX_PATH_CHARS:  # no file has such a name: echoed in every message, a 16 MB line took 546 MB
+            raise ListFileError(f"{path}:{number}: a path of {len(entry)} characters (at most {MAX_PATH_CHARS})")
         logs.append(Path(entry) if Path(entry).is_absolute() else base / entry)
         if len(logs) > MAX_LIST_ENTRIES:
             raise ListFileError(f"{path}: more than {MAX_LIST_ENTRIES} logs")

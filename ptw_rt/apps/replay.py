@@ -61,7 +61,7 @@ from ptw_rt.edge.cycle import (
 )
 from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.errors import EXIT_OK, EXIT_PARTIAL, OutputError, UserFacingError, output_error
-from ptw_rt.io.candump import FrameArrays
+from ptw_rt.io.candump import MAX_RECORDED, FrameArrays
 from ptw_rt.io.logformats import (
     EXTENSIONS,
     FAMILIES,
@@ -78,7 +78,7 @@ from ptw_rt.io.logformats import (
 from ptw_rt.parallel import worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
-from ptw_rt.untrusted import file_kind
+from ptw_rt.untrusted import file_kind, one_line, same_file
 
 __all__ = ["replay_job", "replay_log", "run_replay"]
 
@@ -121,6 +121,10 @@ class _Feed:
             sorted(lay.frame_id for lay in tracker.layouts if not lay.message.is_extended_frame), dtype=np.int64
         )
         self._jumps: dict[int, tuple[int, float, float]] = {}  # frame index -> (line, from, to), not yet reported
+        # segments beyond the first MAX_RECORDED get no line each (a log of short bursts 6 s apart printed one line
+        # per burst, 23 000 for 7.7 MB), one count at the end (`report_bridged`), as the readers do for bad lines
+        self._segments_unlisted = 0
+        self._segments_listed = 0
 
     def __iter__(self) -> Iterator[Block]:
         offset = 0
@@ -139,7 +143,8 @@ class _Feed:
                 self.progress()
 
     def report_bridged(self) -> None:
-        """The discontinuities the driver went through without a new segment (the gap within --max-gap)."""
+        """The discontinuities the driver went through without a new segment (the gap within --max-gap), and how
+        many segments went unlisted."""
         for line, t_from, t_to in self._jumps.values():
             log.warning(
                 "%s:%d: time stamps jump %+.3f s (from %.6f to %.6f): bridged, the gap is within --max-gap %g s "
@@ -152,9 +157,21 @@ class _Feed:
                 self.max_gap,
             )
         self._jumps.clear()
+        if self._segments_unlisted:
+            log.warning(
+                "%s: %d more segments started where the time stamps jump (not listed: the first %d are)",
+                self.name,
+                self._segments_unlisted,
+                MAX_RECORDED,
+            )
+            self._segments_unlisted = 0
 
     def on_segment(self, brk: SegmentBreak) -> None:
         jump = self._jumps.pop(brk.frame, None)
+        if self._segments_listed >= MAX_RECORDED:
+            self._segments_unlisted += 1
+            return
+        self._segments_listed += 1
         where = self.name if jump is None else f"{self.name}:{jump[0]}"
         what = f"a gap longer than --max-gap {self.max_gap:g} s" if brk.kind == "gap" else "the clock going back"
         log.warning(
@@ -271,6 +288,8 @@ def replay_log(
     ``progress`` (if given) is updated with the share of the log read.
     """
     in_path, out_log = Path(in_path), Path(out_log)
+    if in_path.is_dir():  # one of several inputs, a directory in which no log was found (`_collect_logs`)
+        raise UserFacingError(_no_logs_in(in_path))
     wall0 = time.perf_counter()
     runner = runner or build_runner(config, design_file)
     frames_before = _input_frames(runner.tracker.summary())  # a runner given by the caller may have replayed others
@@ -360,6 +379,16 @@ def replay_log(
             raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
         duration += max(0.0, t_last - t_first)
         feed.report_bridged()
+        if stats.reader.other_channel_frames:
+            log.warning(
+                "%s: %d frames on other channels than %s's (%s): read as one bus with them; replay one bus's frames "
+                "(a candump log: grep ' %s ')",
+                in_path,
+                stats.reader.other_channel_frames,
+                stats.reader.first_channel,
+                ", ".join(stats.reader.other_channels),
+                stats.reader.first_channel,
+            )
         for close, path in ((writer.close, out_log), (None if csv is None else csv.close, csv_path)):
             if close is not None:
                 try:
@@ -477,9 +506,9 @@ def _collect_logs(
     except ``.csv`` and ``.txt`` files, which are taken only when they are python-can CAN CSV, candump's screen
     output with time stamps or python-can's text: a ride's truth and estimates CSV files sit beside its log. Its
     outputs mirror the tree below it; a file given directly keeps its name (``logformats.output_name``). With
-    `several` inputs (more than one, or a --list file) a path that is missing, unreadable or not a regular file is
-    kept as a log that fails on its own, like any bad log of a fleet run (its `error:` line, exit 1): one stale
-    line of a list of thousands must not stop the others."""
+    `several` inputs (more than one, or a --list file) a path that is missing, unreadable or not a regular file, or
+    a directory with no log, is kept as a log that fails on its own, like any bad log of a fleet run (its `error:`
+    line, exit 1): one stale line of a list of thousands must not stop the others."""
     files: list[tuple[Path, Path]] = []
     any_dir = False
     for p in paths:
@@ -496,9 +525,10 @@ def _collect_logs(
             any_dir = True
             found = [(q, q.relative_to(p).with_name(output_name(q))) for q in _logs_below(p, exclude)]
             if not found:
-                raise UserFacingError(
-                    f"no CAN logs in directory {p} ({', '.join(EXTENSIONS)}, each also {GZIP_SUFFIX})"
-                )
+                if several:  # fails on its own (`replay_log`: the same message), the others are replayed
+                    files.append((p, Path(output_name(p))))
+                    continue
+                raise UserFacingError(_no_logs_in(p))
             files.extend(found)
         elif stat.S_ISREG(st.st_mode) or several:
             files.append((p, Path(output_name(p))))
@@ -507,15 +537,18 @@ def _collect_logs(
     return files, any_dir
 
 
+def _no_logs_in(directory: Path) -> str:
+    return f"no CAN logs in directory {directory} ({', '.join(EXTENSIONS)}, each also {GZIP_SUFFIX})"
+
+
 def _logs_below(top: Path, exclude: Path | None) -> list[Path]:
-    skip = None if exclude is None else exclude.resolve()
     found: list[Path] = []
     try:
         for root, dirs, names in os.walk(top, onerror=_raise_walk_error):
             here = Path(root)
             depth = len(here.relative_to(top).parts)
             dirs[:] = sorted(
-                d for d in dirs if depth < MAX_TREE_DEPTH and (skip is None or (here / d).resolve() != skip)
+                d for d in dirs if depth < MAX_TREE_DEPTH and (exclude is None or not same_file(here / d, exclude))
             )
             for name in sorted(names):
                 q = here / name
@@ -552,7 +585,7 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
     if not inputs:
         raise UserFacingError("no input log: give logs, directories or --list FILE")
     files, any_dir = _collect_logs(inputs, exclude=args.out, several=len(inputs) > 1 or list_file is not None)
-    if args.csv is not None and args.csv.resolve() == args.out.resolve():  # one would overwrite the other
+    if args.csv is not None and same_file(args.csv, args.out):  # one would overwrite the other
         raise UserFacingError(f"--out and --csv name the same path {args.out}")
     if len(files) == 1 and not any_dir and list_file is None:
         if args.out.is_dir():
@@ -578,7 +611,7 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
     for src, out, csv in jobs:
         writer_format(out)  # an unknown extension: one line now
         for target in (out, csv):
-            if target is not None and target.resolve() == src.resolve():
+            if target is not None and same_file(target, src):
                 raise UserFacingError(f"output {target} would overwrite its input log")
     return jobs
 
@@ -690,7 +723,7 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
         if getattr(args, "dask", None):
             # shipping one log to a cluster would only add the transfer: say so rather than ignore the option
             err.write("replay: one log is replayed in this process; --dask spreads several logs over a cluster\n")
-        bar = Progress(1.0, label=f"replay {src.name}", stream=err, delay=0.5) if progress else None
+        bar = Progress(1.0, label=f"replay {one_line(src.name)}", stream=err, delay=0.5) if progress else None
         result = replay_log(src, dst, csv, config, design_file, progress=bar, max_gap=max_gap)
         lines[0] = json.dumps(_short(result))
         if bar is not None:
@@ -710,11 +743,11 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
                 message = result["error"]
                 where = str(jobs[i][0])
                 line = message if message.startswith(where) else f"{where}: {message}"
-                err.write(("\n" if bar is not None and bar.tty else "") + f"error: {line}\n")
+                err.write(("\n" if bar is not None and bar.tty else "") + f"error: {one_line(line)}\n")
             else:
                 riding_s += result["log_duration_s"]
             if bar is not None:
-                bar.step(jobs[i][0].name)
+                bar.step(one_line(jobs[i][0].name))
 
         fleet.run_jobs(
             replay_job,

@@ -19,7 +19,7 @@ from ptw_rt.model.sharp import lpv_model
 from ptw_rt.output import emit
 from ptw_rt.paths import design_file_for, own_design_file
 from ptw_rt.settings import Settings, load_settings
-from ptw_rt.untrusted import check_replaceable
+from ptw_rt.untrusted import check_replaceable, same_file
 
 # How many speeds to test inside each grid interval for the interpolated gains.
 BETWEEN_GRID_SAMPLES = 7
@@ -284,7 +284,7 @@ def run_design(args) -> int:
         emit(result, args.json, f"Design check of {source}\n" + format_check(result))
         return 0 if result["stable"] else 1
     out = args.out or own_design_file(args.config)
-    if Path(out).resolve() == Path(args.config).resolve():
+    if same_file(out, args.config):
         raise UserFacingError(f"--out {out} is the configuration it is designed from: name the design file")
     try:
         check_replaceable(out)  # before the minutes of designing

@@ -18,7 +18,7 @@ import numpy as np
 
 from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_DESIGN, own_design_file
-from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, short_text
+from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, same_file, short_text
 
 FORMAT_VERSION = 10
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
@@ -347,7 +347,7 @@ def load_design(
     path = Path(path)
     # the shipped design read for a file of one's own (it has none yet): its own is what to write, not the shipped
     out = path
-    if config_path != "CONFIG" and path.resolve() == DEFAULT_DESIGN.resolve():
+    if config_path != "CONFIG" and same_file(path, DEFAULT_DESIGN):
         out = own_design_file(config_path)
     hint = REGENERATE_HINT.format(config=config_path, path=out)
     try:
@@ -386,6 +386,30 @@ def load_design(
 
 
 def load_design_for(settings, path: str | Path, config_path: str | Path = "CONFIG") -> DesignData:
-    """`load_design` checked against the running configuration: its hash, sample time and speed grid."""
+    """`load_design` checked against the running configuration: its hash, sample time and speed grid, and the
+    values a restored state file is bounded by (`_check_bounds`)."""
     est = settings.estimator
-    return load_design(path, settings.config_hash, config_path, est.sample_time, est.speed_grid_ms())
+    design = load_design(path, settings.config_hash, config_path, est.sample_time, est.speed_grid_ms())
+    _check_bounds(design, settings, path, config_path)
+    return design
+
+
+def _check_bounds(design: DesignData, settings, path: str | Path, config_path: str | Path) -> None:
+    """The design's nominal stiffness, its deviation bound and the tyre hypotheses, recomputed from the
+    configuration: they bound what a state file may restore (`ptw_rt.io.state_file`), and a design file whose
+    config hash is right but whose values are not (edited, or garbage that kept the hash) let the daemon restore
+    a learned stiffness ten times the file's."""
+    nominal = np.array(settings.vehicle.nominal_stiffness())
+    expected = {
+        "ad_theta_nominal": nominal,
+        "ad_theta_bound": settings.estimator.stiffness_deviation_bound * nominal,
+        "tb_scale": settings.estimator.tyre_bank.scales(),
+    }
+    for name, want in expected.items():
+        have = getattr(design, name)
+        if have.shape != want.shape or not np.allclose(have, want, rtol=1e-9, atol=0.0):
+            hint = REGENERATE_HINT.format(config=config_path, path=path)
+            raise DesignFileError(
+                f"{path}: its {name} {excerpt(have.tolist())} is not what the configuration makes "
+                f"({excerpt(want.tolist())}); {hint}"
+            )

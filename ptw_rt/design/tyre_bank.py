@@ -22,8 +22,6 @@ Tables (H hypotheses, G grid speeds; hypothesis-major, so rows h*G .. h*G+G-1 ar
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ptw_rt.design import kalman
@@ -31,18 +29,10 @@ from ptw_rt.model.parameters import VehicleParameters
 from ptw_rt.settings import KalmanTuning, TyreBankTuning
 
 
-def scales(tuning: TyreBankTuning) -> np.ndarray:
-    """The hypotheses: powers of `step` from min_scale to max_scale; 1 (the nominal tyres) is always one."""
-    ratio = math.log(tuning.step)
-    lo = math.ceil(math.log(tuning.min_scale) / ratio - 1e-9)
-    hi = math.floor(math.log(tuning.max_scale) / ratio + 1e-9)
-    return np.exp(np.arange(lo, hi + 1) * ratio)
-
-
 def design_bank(
     p: VehicleParameters, grid: np.ndarray, dt: float, kalman_tuning: KalmanTuning, tuning: TyreBankTuning
 ) -> dict[str, np.ndarray]:
-    ks = scales(tuning)
+    ks = tuning.scales()
     phi, gain, gd, sinv, logdet = [], [], [], [], []
     gain_pub = []
     published = kalman_tuning.published_force_noise

@@ -508,6 +508,11 @@ class TimeRule(Iterator[LogFrame]):
         self.discontinuities = 0
         self.remote = 0  # remote frames left out by ``arrays`` (the per-frame iteration gives them)
         self.discontinuity_lines: list[tuple[int, float, float]] = []
+        # the channel (bus) of the first frame, and the frames on any other: a log of two buses is read as one (the
+        # same frames on can0 and can1 left every cycle INIT, silently), which the reader's user is told
+        self.first_channel: str | None = None
+        self.other_channel_frames = 0
+        self.other_channels: list[str] = []  # their names, the first few
         self.malformed_lines: list[int] = []
         self.problems: list[tuple[int, str]] = []
         self.examples: list[str] = []  # the first few bad records, escaped (``ascii``), for a summary
@@ -518,6 +523,15 @@ class TimeRule(Iterator[LogFrame]):
 
     def _items(self) -> Iterator[LogFrame | Problem]:
         raise NotImplementedError
+
+    def note_channel(self, channel: str, frames: int = 1) -> None:
+        """Count ``frames`` frames on ``channel`` against the log's first channel."""
+        if self.first_channel is None:
+            self.first_channel = channel
+        elif channel != self.first_channel:
+            self.other_channel_frames += frames
+            if channel not in self.other_channels and len(self.other_channels) < 4:
+                self.other_channels.append(channel)
 
     def _release(self) -> None:
         """Close what the reader opened (called once the records are read, or on ``close``)."""
@@ -810,7 +824,9 @@ class CandumpReader(TimeRule):
                 yield Problem(line_no, f"line longer than {MAX_LINE_CHARS} characters", line, "too_long")
                 continue
             try:
-                yield parse_line(line, line_no)
+                frame = parse_line(line, line_no)
+                self.note_channel(frame.channel)
+                yield frame
             except BadTimestampError as exc:
                 yield Problem(line_no, str(exc), line, "bad_timestamp")
             except ValueError as exc:
@@ -828,6 +844,12 @@ class CandumpReader(TimeRule):
                 line_no += len(block)
                 plain = _plain_columns(block)
                 if plain is not None:
+                    channels = plain[1]
+                    if channels.count(channels[0]) == len(channels):  # one channel (C speed: the same object n times)
+                        self.note_channel(channels[0], len(channels))
+                    else:
+                        for channel in channels:
+                            self.note_channel(channel)
                     out = self._rule_columns(*plain, first)
                 else:
                     out = FrameArrays.of(*self._rule_records(self._block_items(block, first)))

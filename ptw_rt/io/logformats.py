@@ -60,7 +60,7 @@ from ptw_rt.io.candump import (
     text_blocks,
     timestamp_problem,
 )
-from ptw_rt.untrusted import error_text, file_size
+from ptw_rt.untrusted import error_text, excerpt, file_size
 
 __all__ = [
     "EXTENSIONS",
@@ -518,7 +518,21 @@ class _AscReader(_TextReader):
         if not channel.isdigit():
             return None
         kwargs["channel"] = int(channel) - 1
-        return reader._process_classic_can_frame(rest, kwargs)
+        msg = reader._process_classic_can_frame(rest, kwargs)
+        if not (msg.is_error_frame or msg.is_remote_frame):
+            tokens = rest.split(None, 4)[4].split() if len(rest.split(None, 4)) > 4 else []
+            _check_data(msg, tokens[: len(msg.data)], reader._converted_base)  # noqa: SLF001 - the header's base
+        return msg
+
+
+def _check_data(msg: Any, tokens: list[str], base: int) -> None:
+    """A text record's data as python-can read them, refused (ValueError) where the line does not hold them: python-can
+    takes the bytes there are (a logger killed mid-write leaves DLC 7 with 3 bytes) and reads a byte cut to one hex
+    digit as that digit (``FC 8`` for ``FC 8F``), where candump's reader counts an odd number of digits."""
+    if len(msg.data) != min(msg.dlc, 8):
+        raise ValueError(f"DLC {msg.dlc} with {len(msg.data)} data bytes")
+    if base == 16 and any(len(t) != 2 for t in tokens):
+        raise ValueError(f"a data byte that is not two hex digits in {excerpt(' '.join(tokens))}")
 
 
 _ASC_EVENT = re.compile(r"\d+\.\d+\s")  # a time-stamped line: a frame, or an event (statistics, status, errors)
@@ -554,6 +568,8 @@ class _TrcReader(_TextReader):
             raise ValueError("not a TRC record (no message number)")
         cols = tuple(line.split(maxsplit=reader._num_columns))
         msg = reader._parse_cols(cols)
+        if msg is not None and not (msg.is_error_frame or msg.is_remote_frame or msg.is_fd):
+            _check_data(msg, line.split()[len(line.split()) - len(msg.data) :] if msg.data else [], 16)
         if msg is not None and isinstance(msg.timestamp, float) and math.isfinite(msg.timestamp):
             # start (days since 1899, a double: 0.6 us steps) + offset (ms, 3 decimals): the sum carries float
             # noise below the format's 1 us resolution; rounded to it, the stamps are candump's to the bit
@@ -631,7 +647,10 @@ class _PycanTextReader(_LineReader):
         except ValueError as exc:
             return Problem(n, error_text(exc), text, "bad_timestamp")
         marks = flags.split()
-        payload = bytes.fromhex(data)  # hex pairs (the line's pattern)
+        try:  # hex pairs (the line's pattern), but its \s also takes control and non-ASCII spaces fromhex refuses
+            payload = bytes.fromhex(data)
+        except ValueError as exc:
+            return Problem(n, error_text(exc), text, "malformed")
         if self._skipped("E" in marks, "R" in marks, "F" in marks or len(payload) > 8):
             return None
         if len(payload) != int(length):
@@ -665,9 +684,11 @@ class _CsvReader(_LineReader):
             ts = float(stamp)
             frame_id = int(ident, 16)
             payload = base64.b64decode(data, validate=True)
-            int(dlc)
+            length = int(dlc)
         except (ValueError, binascii.Error) as exc:
             return Problem(n, error_text(exc), text, "malformed")
+        if remote != "1" and length != len(payload):  # a line cut mid-write can still be base64
+            return Problem(n, f"DLC {length} with {len(payload)} data bytes", text, "malformed")
         if self._skipped(error == "1", remote == "1", len(payload) > 8):
             return None
         return _frame(ts, 0, frame_id, payload, n, extended == "1")
@@ -967,6 +988,7 @@ def open_log(
 
 
 def _frames(reader: TimeRule, stats: LogStats) -> Iterator[tuple[float, int, bytes, bool]]:
+    counts_channels = stats.format != "candump"  # candump's reader counts them as it parses (`note_channel`)
     try:
         for f in reader:
             if f.is_remote:
@@ -974,6 +996,8 @@ def _frames(reader: TimeRule, stats: LogStats) -> Iterator[tuple[float, int, byt
                 continue
             if stats.channel is None:
                 stats.channel = f.channel
+            if counts_channels:
+                reader.note_channel(f.channel)
             stats.line = f.line_no
             yield f.timestamp, f.frame_id, f.data, f.is_extended
     finally:

@@ -24,6 +24,7 @@ from typing import IO, Any
 from ptw_rt.core.layout import MODE_NAMES as _MODE_NAMES
 from ptw_rt.core.layout import REASON_NAMES as _REASON_NAMES
 from ptw_rt.errors import UserFacingError
+from ptw_rt.untrusted import one_line
 
 __all__ = [
     "FIELDS_ATTR",
@@ -145,6 +146,45 @@ def setup_logging(level: str = "INFO", json_lines: bool = False, *, stream: IO[s
     root.setLevel(getattr(logging, name))
     logging.captureWarnings(True)
     return handler
+
+
+class _StderrNow(logging.StreamHandler):
+    """Writes to ``sys.stderr`` as it is at each record (a stream redirected after the start, a test's capture), as
+    Python's last-resort handler does."""
+
+    def __init__(self) -> None:
+        super().__init__()
+
+    @property
+    def stream(self) -> IO[str]:  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: IO[str]) -> None:
+        pass
+
+
+class MessageLineFormatter(logging.Formatter):
+    """A command's warning as its bare message (what Python's last resort printed), always one line: a log file
+    named ``x\nerror: y.log: ...`` in a replayed directory forged an error line of its own."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return one_line(record.getMessage())
+
+
+def setup_command_logging() -> None:
+    """For the commands other than the daemon (which calls `setup_logging`, replacing this): warnings and errors on
+    stderr, one line each (`MessageLineFormatter`)."""
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        if getattr(h, _HANDLER_MARK, False):
+            root.removeHandler(h)
+            h.close()
+    handler = _StderrNow()
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(MessageLineFormatter())
+    setattr(handler, _HANDLER_MARK, True)
+    root.addHandler(handler)
 
 
 @dataclass

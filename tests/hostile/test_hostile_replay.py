@@ -22,7 +22,7 @@ from ptw_rt.errors import EXIT_OUTPUT, EXIT_PARTIAL, UserFacingError
 from ptw_rt.io.candump import read_log
 from ptw_rt.paths import DEFAULT_CONFIG
 
-from .conftest import LOG_EPOCH, clean_log_lines
+from .conftest import LOG_EPOCH, clean_log_lines, shifted
 
 CLEAN_S = 2.0  # seconds of content of every clean block in the fixtures
 CLEAN_CYCLES = int(CLEAN_S * 100)
@@ -332,3 +332,112 @@ def test_an_output_that_is_a_fifo_is_refused_not_waited_on(hostile_logs, tmp_pat
     with pytest.raises(ReplayOutputError, match="FIFO") as info:
         run_replay(_args([hostile_logs["gap_3s"]], fifo))
     assert info.value.exit_code == EXIT_OUTPUT
+
+
+# ---------------------------------------------------------------------- paths (found by fuzzing, 2026-12-07)
+
+
+def test_an_output_hard_linked_to_its_input_is_refused_and_the_input_kept(hostile_logs, tmp_path):
+    """The overwrite check compared resolved paths only: a hard link (or a bind mount) of the input as --out or
+    --csv was truncated while read, 25 139 of 93 000 frames replayed, exit 0, the recording gone."""
+    src = tmp_path / "ride.log"
+    src.write_bytes(hostile_logs["gap_3s"].read_bytes())
+    before = src.read_bytes()
+    (tmp_path / "out.log").hardlink_to(src)
+    (tmp_path / "est.csv").hardlink_to(src)
+    for out, csv in ((tmp_path / "out.log", None), (tmp_path / "other.log", tmp_path / "est.csv")):
+        with pytest.raises(UserFacingError, match="would overwrite its input log"):
+            run_replay(_args([src], out, csv=csv), out=io.StringIO(), err=io.StringIO())
+    assert src.read_bytes() == before
+
+
+def test_a_symlink_loop_is_one_line_wherever_a_path_is_compared(hostile_logs, tmp_path):
+    """Path.resolve() raised RuntimeError on a loop: a traceback from replay's output checks, the directory walk,
+    `design --out` and `--design-file` (found by fuzzing)."""
+    from ptw_rt.untrusted import same_file
+
+    (tmp_path / "loop_a").symlink_to(tmp_path / "loop_b")
+    (tmp_path / "loop_b").symlink_to(tmp_path / "loop_a")
+    src = tmp_path / "ride.log"
+    src.write_bytes(hostile_logs["gap_3s"].read_bytes())
+    assert not same_file(tmp_path / "loop_a", src) and same_file(tmp_path / "loop_a", tmp_path / "loop_a")
+    with pytest.raises(UserFacingError, match="Too many levels of symbolic links"):  # an output error: exit 74
+        run_replay(_args([src], tmp_path / "loop_a"), out=io.StringIO(), err=io.StringIO())
+    out, err = io.StringIO(), io.StringIO()
+    assert run_replay(_args([src, tmp_path / "loop_b"], tmp_path / "out"), out=out, err=err) == EXIT_PARTIAL
+
+
+def test_a_listed_directory_without_logs_fails_on_its_own(hostile_logs, tmp_path):
+    """It stopped the whole fleet (exit 2, nothing replayed) though the README says a bad entry fails alone."""
+    good = tmp_path / "good.log"
+    good.write_bytes(hostile_logs["gap_3s"].read_bytes())
+    (tmp_path / "empty").mkdir()
+    listing = tmp_path / "logs.txt"
+    listing.write_text("good.log\nempty\n")
+    out, err = io.StringIO(), io.StringIO()
+    args = _args([], tmp_path / "out")
+    args.list = listing
+    assert run_replay(args, out=out, err=err) == EXIT_PARTIAL
+    by_name = {s["log"].rsplit("/", 1)[-1]: s for s in map(json.loads, out.getvalue().splitlines())}
+    assert by_name["good.log"]["cycles"] > 0 and "no CAN logs in directory" in by_name["empty"]["error"]
+
+
+def test_a_list_line_longer_than_any_path_is_refused_in_one_line(tmp_path):
+    """A 16 MB line was echoed whole in the error line and the fleet CSV (546 MB peak)."""
+    listing = tmp_path / "logs.txt"
+    listing.write_text("a.log\n" + "x" * 100_000 + "\n")
+    args = _args([], tmp_path / "out")
+    args.list = listing
+    with pytest.raises(UserFacingError, match=r"logs.txt:2: a path of 100000 characters") as info:
+        run_replay(args, out=io.StringIO(), err=io.StringIO())
+    assert len(str(info.value)) < 300
+
+
+def test_a_log_named_with_a_newline_cannot_forge_an_error_line(tmp_path):
+    """A file in a replayed directory named "bad<newline>error: a.log: ..." printed a line of its own that read as
+    another log's error."""
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "a.log").write_text("\n".join(clean_log_lines(1.0)) + "\n")
+    (src / "bad\nerror: a.log: forged.log").write_text("not a log\n")
+    out, err = io.StringIO(), io.StringIO()
+    assert run_replay(_args([src], tmp_path / "out"), out=out, err=err) == EXIT_PARTIAL
+    lines = err.getvalue().splitlines()
+    assert not any(line.startswith("error: a.log") for line in lines), lines
+    assert sum(line.startswith("error: ") for line in lines) == 1
+
+
+def test_segment_lines_are_capped_like_the_readers_bad_lines(tmp_path, runner, caplog):
+    """A log of short bursts 6 s apart printed one warning per segment (23 000 lines for 7.7 MB)."""
+    from ptw_rt.io.candump import MAX_RECORDED
+
+    lines = []
+    for k in range(MAX_RECORDED + 50):
+        lines += shifted(clean_log_lines(0.05), 6.0 * k)  # 15 frames: the time rule confirms a new base after 8
+    path = tmp_path / "bursts.log"
+    path.write_text("\n".join(lines) + "\n")
+    with caplog.at_level(logging.WARNING):
+        s, _ = _replay(path, tmp_path, runner)
+    assert s["segments"] == MAX_RECORDED + 50
+    segment_lines = _lines(caplog, "segment")
+    assert len(segment_lines) == MAX_RECORDED + 1 and "49 more segments" in segment_lines[-1]
+
+
+def test_a_log_of_two_buses_says_so(tmp_path, runner, caplog):
+    """Every frame again on a second channel (`candump -L any` of two buses): read as one bus, every cycle stayed
+    INIT, exit 0 and nothing said (found by fuzzing). Now one line names the other channel and how to pick one."""
+    lines = []
+    for line in clean_log_lines(1.0):
+        lines += [line, shifted([line], 0.0001)[0].replace(" vcan0 ", " vcan1 ")]
+    path = tmp_path / "two_buses.log"
+    path.write_text("\n".join(lines) + "\n")
+    with caplog.at_level(logging.WARNING):
+        _replay(path, tmp_path, runner)
+    said = _lines(caplog, "other channels")
+    assert len(said) == 1 and "300 frames on other channels than vcan0's (vcan1)" in said[0], said
+    caplog.clear()
+    single = tmp_path / "one_bus.log"
+    single.write_text("\n".join(clean_log_lines(1.0)) + "\n")
+    with caplog.at_level(logging.WARNING):
+        _replay(single, tmp_path, runner)
+    assert not _lines(caplog, "other channels")
