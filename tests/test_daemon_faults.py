@@ -808,6 +808,22 @@ def test_a_stop_saves_what_was_valid_earlier_in_the_ride(tmp_path):
     np.testing.assert_allclose(saved.stiffness, learned, rtol=1e-9)
 
 
+def test_a_stop_whose_save_fails_says_so_whatever_the_rate_limit(tmp_path, caplog):
+    """The last save, at the stop, failed unsaid when it came within the rate limiter's interval of a periodic
+    save's failure (a full disk, a read-only directory): the ride's newest learning lost without a line (found by
+    fuzzing, 2026-12-07). The stop's failure is always one error line."""
+    (tmp_path / "a_file").write_text("")
+    state = tmp_path / "a_file" / "state.json"  # every save fails: its directory is a file
+    daemon = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    daemon.on_cycle = _learns(daemon, daemon.runner.estimator.design.ad_theta_nominal * 0.9)
+    daemon.rate_log.warn("state_save", "an earlier save failed", time.monotonic())  # the limiter's interval runs
+    with caplog.at_level(logging.WARNING, logger="ptw_rt"):
+        _run(daemon, 0.5)
+    said = [r for r in caplog.records if "at stop" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.ERROR and str(state) in said[0].getMessage()
+    assert not state.exists()
+
+
 def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
     """The attitude filter's biases are saved with the tyres and start the next boot (rather than 10 s of
     re-learning from the configured zero); a file of before they were kept restores the tyres alone."""
@@ -1112,3 +1128,31 @@ def test_a_reload_that_bounds_the_steer_zero_tighter_carries_the_rest_and_keeps_
     np.testing.assert_allclose(estimator.learned_stiffness(), learned, rtol=1e-6)
     assert estimator.learned_steer_zero() is None
     assert daemon._kept_steer_zero is None and daemon._kept_biases == pytest.approx(biases)
+
+
+def test_the_daemon_takes_classic_data_frames_only():
+    """Error, remote and CAN FD frames are no input, live as in a replay: an FD frame of an input's id with a classic
+    payload was decoded by the daemon and skipped by the replay of the same traffic (found by fuzzing, 2026-12-07)."""
+    import collections
+
+    from ptw_rt.service.daemon import _Reader
+
+    frames = [
+        can.Message(arbitration_id=0x100, data=bytes(7), is_extended_id=False),
+        can.Message(arbitration_id=0x100, data=bytes(7), is_extended_id=False, is_fd=True),
+        can.Message(arbitration_id=0x100, is_extended_id=False, is_error_frame=True),
+        can.Message(arbitration_id=0x100, is_extended_id=False, is_remote_frame=True, dlc=7),
+        can.Message(arbitration_id=0x101, data=bytes(7), is_extended_id=False),
+    ]
+
+    class Bus:
+        def recv(self, timeout):
+            if frames:
+                return frames.pop(0)
+            reader.running = False
+            return None
+
+    queue = collections.deque()
+    reader = _Reader(Bus(), queue)
+    reader.run()
+    assert [(frame_id, len(data)) for _, frame_id, data, _ in queue] == [(0x100, 7), (0x101, 7)]

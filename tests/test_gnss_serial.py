@@ -280,3 +280,37 @@ def test_documented_daemon_yaml_with_serial_gnss(tmp_path, capsys):
     assert settings.config_hash == load_settings(DEFAULT_CONFIG).config_hash  # the committed design still fits
     assert main(["run", "--config", str(daemon_yaml), "--check-config"]) == 0
     assert "gps serial" in capsys.readouterr().out
+
+
+def test_a_flood_of_junk_lines_costs_the_cycle_one_call(monkeypatch):
+    """A receiver (or a USB CDC port, which ignores the baud rate) writing junk lines: the cycle took each bad line
+    as one call into the input tracker, 750 000 a second, and one cycle took 209 ms (found by fuzzing, 2026-12-07).
+    However many lines went bad since the last cycle, they are counted in one call."""
+    from types import SimpleNamespace
+
+    from ptw_rt.edge.cycle import build_runner
+
+    runner = build_runner(DEFAULT_CONFIG)
+    calls = []
+    decode_error = runner.tracker.decode_error
+    monkeypatch.setattr(runner.tracker, "decode_error", lambda *a: calls.append(a) or decode_error(*a))
+    warned = []
+    owner = SimpleNamespace(
+        _gnss_connected=True,
+        _gnss_bad=0,
+        _gnss_taken=None,
+        rate_log=SimpleNamespace(warn=lambda *a: warned.append(a), error=lambda *a: None),
+    )
+    gnss = SimpleNamespace(
+        connected=True,
+        port="/dev/ttyFAKE",
+        bad_lines=750_000,
+        parser=SimpleNamespace(checksum_errors=0),
+        latest=lambda: None,
+    )
+    Daemon._poll_gnss(owner, runner, gnss, 0.0)
+    assert len(calls) == 1 and owner._gnss_bad == 750_000 and len(warned) == 1
+    assert runner.tracker.summary()["GPS_Velocity"]["decode_errors"] == 750_000
+    gnss.bad_lines += 3
+    Daemon._poll_gnss(owner, runner, gnss, 0.01)
+    assert len(calls) == 2 and runner.tracker.summary()["GPS_Velocity"]["decode_errors"] == 750_003

@@ -230,7 +230,7 @@ def drive_block(
                 if kind == FRAME_OK:
                     tr.track_values(tstate, tparams, inputs[i], ts, frame_values[i], True)
                 elif kind == FRAME_UNDECODABLE:
-                    tr.track_decode_error(tstate, inputs[i])
+                    tr.track_decode_error(tstate, inputs[i], 1.0)
                 else:
                     tr.track_unknown(tstate)
                 consumed = True

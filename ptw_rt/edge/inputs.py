@@ -138,7 +138,7 @@ class InputTracker:
             except FrameDecodeError:
                 values = None
         if values is None:
-            tr.track_decode_error(self.state, k)
+            tr.track_decode_error(self.state, k, 1.0)
             return
         packer.pack_into(self._values, 0, *values)  # float64 bytes straight into the buffer (no numpy call)
         tr.track_values(self.state, self.params, k, float(timestamp), self._values, True)
@@ -159,9 +159,9 @@ class InputTracker:
         before it may be taken as the last value, nor a counter continue across it."""
         tr.track_restart(self.state)
 
-    def decode_error(self, message: str) -> None:
-        """Something of ``message`` arrived that could not be decoded (a serial line with a bad checksum)."""
-        tr.track_decode_error(self.state, self._input[message])
+    def decode_error(self, message: str, count: int = 1) -> None:
+        """``count`` records of ``message`` arrived that could not be decoded (serial lines with a bad checksum)."""
+        tr.track_decode_error(self.state, self._input[message], float(count))
 
     def lost(self, message: str) -> None:
         """The source of ``message`` is gone (a serial receiver unplugged): stale from the next ``fill`` on,

@@ -175,7 +175,9 @@ class _Reader(threading.Thread):
                 if self.running:  # the loop reopens the bus: a dead reader left it FAULT for good, STATUS bus=open
                     self.failed = f"{type(exc).__name__}: {exc}"
                 return
-            if msg is not None and not msg.is_error_frame and not msg.is_remote_frame:
+            # error, remote and CAN FD frames are no input (the DBC's are classic frames), as in a replay: an FD frame
+            # of an input's id with a classic payload was decoded live and skipped by the replay of the same traffic
+            if msg is not None and not (msg.is_error_frame or msg.is_remote_frame or msg.is_fd):
                 append((clock(), msg.arbitration_id, bytes(msg.data), msg.is_extended_id))
 
 
@@ -517,8 +519,7 @@ class Daemon:
                 log.info("GNSS receiver %s connected", gnss.port)
         bad = gnss.bad_lines
         if bad != self._gnss_bad:
-            for _ in range(bad - self._gnss_bad):
-                runner.tracker.decode_error("GPS_Velocity")
+            runner.tracker.decode_error("GPS_Velocity", bad - self._gnss_bad)  # one call, however many lines
             self._gnss_bad = bad
             p = gnss.parser
             self.rate_log.warn(
@@ -624,7 +625,10 @@ class Daemon:
         biases = (self._kept_biases, self._kept_accel_biases)
         return [float(v) for v in self._kept_stiffness], biases, steer_zero
 
-    def _save_state(self, values, now: float) -> None:
+    def _save_state(self, values, now: float, final: bool = False) -> None:
+        """Write the learned values; a failure is a rate-limited warning while riding (the next save retries), always
+        a line at the stop (`final`): the last save's failure was swallowed by the limiter when it came within its
+        interval of the one before, and the ride's newest learning was lost unsaid (found by fuzzing)."""
         path = self.settings.runtime.state_file
         if not path or values is None:
             return
@@ -641,7 +645,10 @@ class Daemon:
             )
             self.state_saves += 1
         except (OSError, ValueError, TypeError) as exc:
-            self.rate_log.warn("state_save", f"cannot save state to {path}: {exc}", now)
+            if final:
+                log.error("cannot save state to %s at stop: %s (the file keeps what an earlier save wrote)", path, exc)
+            else:
+                self.rate_log.warn("state_save", f"cannot save state to {path}: {exc}", now)
 
     def _save_in_background(self, now: float) -> None:
         if self._saver is not None and self._saver.is_alive():
@@ -926,7 +933,7 @@ class Daemon:
             _send_frame(self, self.bus, *last, SEND_TIMEOUT_S, self.rate_log)
         if self._saver is not None:
             self._saver.join(timeout=5.0)
-        self._save_state(self._stiffness_to_save(), time.monotonic())
+        self._save_state(self._stiffness_to_save(), time.monotonic(), final=True)
         self._close_bus(wait=True)
         opener, self._opener = self._opener, None
         if opener is not None:  # a reopen under way: its bus, if it comes, is closed, not left open
