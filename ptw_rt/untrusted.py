@@ -249,5 +249,4 @@ def one_line(text: str, limit: int = 2000) -> str:
 def short_text(text: str, limit: int = 120) -> str:
     """A message fragment (e.g. a parser's problem text) on one line, ASCII-escaped (control characters too), at
     most ``limit`` chars."""
-    text = " ".join(str(text).split()).encode("ascii", "backslashreplace").decode("ascii").translate(_CONTROL_ESCAPES)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    return one_line(" ".join(str(text).split()), limit)

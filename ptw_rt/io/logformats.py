@@ -520,7 +520,8 @@ class _AscReader(_TextReader):
         kwargs["channel"] = int(channel) - 1
         msg = reader._process_classic_can_frame(rest, kwargs)
         if not (msg.is_error_frame or msg.is_remote_frame):
-            tokens = rest.split(None, 4)[4].split() if len(rest.split(None, 4)) > 4 else []
+            fields = rest.split(None, 4)  # id, direction, "d", DLC, the data and what follows it
+            tokens = fields[4].split() if len(fields) > 4 else []
             _check_data(msg, tokens[: len(msg.data)], reader._converted_base)  # noqa: SLF001 - the header's base
         return msg
 

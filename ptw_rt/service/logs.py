@@ -152,9 +152,6 @@ class _StderrNow(logging.StreamHandler):
     """Writes to ``sys.stderr`` as it is at each record (a stream redirected after the start, a test's capture), as
     Python's last-resort handler does."""
 
-    def __init__(self) -> None:
-        super().__init__()
-
     @property
     def stream(self) -> IO[str]:  # type: ignore[override]
         return sys.stderr
