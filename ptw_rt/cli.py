@@ -405,6 +405,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="a gap in a log's time stamps longer than this ends a segment; the next starts from reset inputs "
         "(0.1-60 s, default: 5 s)",
     )
+    p.add_argument(
+        "--channel",
+        default=None,
+        metavar="NAME",
+        help="in a log of several buses, the one to read, as the log names it (candump: can0; ASC, BLF: 0, 1 ...); "
+        "default: the bus of the first input frame. Frames on the others are skipped and counted",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines on stderr")
     p.set_defaults(handler=_replay)
 

@@ -246,6 +246,17 @@ def one_line(text: str, limit: int = 2000) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+# ``_CONTROL_ESCAPES`` and the C1 controls (U+0080-U+009F, a terminal's CSI among them), CR and LF as ``\r``, ``\n``
+_LINE_ESCAPES = {**_CONTROL_ESCAPES, **{c: f"\\x{c:02x}" for c in range(0x80, 0xA0)}, 10: "\\n", 13: "\\r"}
+
+
+def log_line(text: str) -> str:
+    """A log record as one line for the journal: control characters escaped (C0, DEL, C1: one in a message made
+    journalctl show the line as a blob, an ESC sequence is a terminal command), other text kept (the daemon's
+    messages say deg and us in UTF-8)."""
+    return text.translate(_LINE_ESCAPES)
+
+
 def short_text(text: str, limit: int = 120) -> str:
     """A message fragment (e.g. a parser's problem text) on one line, ASCII-escaped (control characters too), at
     most ``limit`` chars."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import json
 import logging
 import os
 import signal
@@ -848,6 +849,17 @@ def test_restart_keeps_the_sensor_biases_through_the_state_file(tmp_path):
     x = second.runner.estimator.states["attitude"][att.ST_X : att.ST_X + att.N_X]
     assert (x[att.X_BP], x[att.X_BQ], x[att.X_BR], x[att.X_BAY]) == pytest.approx(biases)
     assert (x[att.X_BAX], x[att.X_BAZ]) == pytest.approx(accel)
+
+    # a file with the accelerometers' biases but not the four they go with (the daemon never writes one: edited, or
+    # written elsewhere) restored the tyres and dropped those biases without a word
+    doc = json.loads(state.read_text())
+    del doc["sensor_biases"]
+    state.write_text(json.dumps(doc))
+    third = _daemon(tmp_path, channel=_channel(), state_file=str(state))
+    assert third.state_note.startswith("restored learned tyre stiffness from"), third.state_note
+    assert "accelerometer biases not restored: saved without the sensor biases" in third.state_note
+    x = third.runner.estimator.states["attitude"][att.ST_X : att.ST_X + att.N_X]
+    assert (x[att.X_BAX], x[att.X_BAZ]) == (0.0, 0.0)
 
 
 def test_a_save_while_the_biases_are_doubted_keeps_the_last_good_ones(tmp_path):

@@ -23,7 +23,7 @@ import can
 import pytest
 
 from ptw_rt.apps.replay import replay_log
-from ptw_rt.io.candump import CandumpWriter
+from ptw_rt.io.candump import CandumpWriter, read_log
 from ptw_rt.io.logformats import (
     EmptyLogError,
     LogFormatError,
@@ -897,3 +897,54 @@ def test_a_python_can_text_line_with_a_control_character_between_its_bytes_is_on
     good, _ = _frames(text)
     got, stats = _frames(path)
     assert stats.malformed == 1 and len(got) == len(good) - 1
+
+
+def _on_two_buses(ride, fmt: str, path: Path) -> None:
+    """The ride on two buses, every frame on both, and a third bus's frame after the first input."""
+    if fmt.startswith("candump"):
+        lines = ride["candump"].read_text().splitlines()
+        both = [x for line in lines for x in (line, line.replace(" vcan0 ", " vcan1 "))]
+        stamp = lines[0].split(")")[0] + ")"
+        both.insert(2, f"{stamp} can9 7F0#01")
+        if fmt == "candump_records":  # a bad line: the block goes record by record, not as columns
+            both.insert(0, "not a candump line")
+        path.write_text("\n".join(both) + "\n")
+        return
+    messages = list(can.LogReader(str(ride["candump"])))
+    with can.Logger(str(path)) as writer:
+        for k, msg in enumerate(messages):
+            for channel in (0, 1):
+                msg.channel = channel
+                writer.on_message_received(msg)
+            if k == 0:
+                writer.on_message_received(can.Message(timestamp=msg.timestamp, arbitration_id=0x7F0, channel=9))
+
+
+@pytest.mark.parametrize("fmt", ["candump", "candump_records", "asc", "blf", "mf4", "trc"])
+def test_a_log_of_two_buses_is_replayed_on_the_inputs_bus(ride, replays, fmt, tmp_path, caplog):
+    """`candump -L any` of two buses: read as one bus, every frame came twice and every cycle stayed INIT. The bus
+    of the first input frame is read (the daemon reads one bus), the others' frames skipped, counted and said in
+    one line; ``--channel`` reads another; a channel the log lacks is one line."""
+    ext = "log" if fmt.startswith("candump") else fmt
+    path = tmp_path / f"two_buses.{ext}"
+    _on_two_buses(ride, fmt, path)
+    reference = _estimates(replays[fmt.split("_")[0]][1])
+    frames = len(ride["candump"].read_text().splitlines())
+    # the channels as the format names them (TRC counts buses from 1, python-can's ASC, BLF and MF4 from 0)
+    *names, third = {"log": ("vcan0", "vcan1", "can9"), "trc": ("1", "2", "10")}.get(ext, ("0", "1", "9"))
+    for channel in (None, *names):
+        caplog.clear()
+        csv = tmp_path / f"{channel}.csv"
+        out = tmp_path / f"{channel}.out.log"
+        summary = replay_log(path, out, csv, DEFAULT_CONFIG, channel=channel)
+        assert _estimates(csv) == reference, channel
+        said = [r.getMessage() for r in caplog.records if "other channels" in r.getMessage()]
+        assert len(said) == 1 and f"{frames + 1} frames on other channels" in said[0], said
+        read = channel or names[0]
+        assert f"than the bus read, {read}" in said[0] and f", {third})" in said[0], said
+        if ext == "log":
+            assert {f.channel for f in read_log(out)} == {read}
+        assert summary["frames_in"] >= frames
+        assert summary["bus"] == read and summary["other_bus_frames"] == frames + 1
+    with pytest.raises(EmptyLogError, match="no frame on --channel nosuch"):
+        replay_log(path, tmp_path / "none.log", None, DEFAULT_CONFIG, channel="nosuch")

@@ -71,6 +71,21 @@ def test_text_lines_are_structured_and_single(restore_root):
     assert "RuntimeError: boom" in lines[1]
 
 
+def test_control_characters_are_escaped_and_text_kept(restore_root):
+    """A message carrying an untrusted name (a device, a state file's path) with ESC, NUL or a C1 control went to
+    the journal raw: journalctl shows such a line as a blob, and a terminal takes ESC as a command. Escaped now,
+    in the message and in the fields; the daemon's own UTF-8 (deg, us) kept."""
+    buf = io.StringIO()
+    setup_logging("info", stream=buf)
+    logging.getLogger("ptw_rt.daemon").warning(
+        "state file /tmp/a\x1b[2Jb\x00c\x85d\te refused (4.2 \u00b0, 12 \u00b5s)", extra=fields(path="x\x1by\x07")
+    )
+    (line,) = buf.getvalue().splitlines()
+    assert not re.search("[\x00-\x1f\x7f-\x9f]", line), repr(line)
+    assert "/tmp/a\\x1b[2Jb\\x00c\\x85d\\x09e refused (4.2 \u00b0, 12 \u00b5s)" in line
+    assert "path=x\\x1by\\x07" in line
+
+
 def test_json_lines(restore_root):
     buf = io.StringIO()
     setup_logging("DEBUG", json_lines=True, stream=buf)

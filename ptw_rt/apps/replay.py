@@ -61,7 +61,7 @@ from ptw_rt.edge.cycle import (
 )
 from ptw_rt.edge.inputs import InputTracker
 from ptw_rt.errors import EXIT_OK, EXIT_PARTIAL, OutputError, UserFacingError, output_error
-from ptw_rt.io.candump import MAX_RECORDED, FrameArrays
+from ptw_rt.io.candump import MAX_RECORDED, BusChoice, FrameArrays
 from ptw_rt.io.logformats import (
     EXTENSIONS,
     FAMILIES,
@@ -117,14 +117,19 @@ class _Feed:
         self.skipped = 0
         # 29-bit frames whose id is an 11-bit input's: a logger that flags every frame extended, not another bus
         self.extended_inputs = 0
-        self.input_ids = np.array(
-            sorted(lay.frame_id for lay in tracker.layouts if not lay.message.is_extended_frame), dtype=np.int64
-        )
+        self.input_ids = self.input_ids_of(tracker)
         self._jumps: dict[int, tuple[int, float, float]] = {}  # frame index -> (line, from, to), not yet reported
         # segments beyond the first MAX_RECORDED get no line each (a log of short bursts 6 s apart printed one line
         # per burst, 23 000 for 7.7 MB), one count at the end (`report_bridged`), as the readers do for bad lines
         self._segments_unlisted = 0
         self._segments_listed = 0
+
+    @staticmethod
+    def input_ids_of(tracker: InputTracker) -> np.ndarray:
+        """The 11-bit ids of the inputs the tracker decodes, sorted."""
+        return np.array(
+            sorted(lay.frame_id for lay in tracker.layouts if not lay.message.is_extended_frame), dtype=np.int64
+        )
 
     def __iter__(self) -> Iterator[Block]:
         offset = 0
@@ -276,6 +281,7 @@ def replay_log(
     runner: CycleRunner | None = None,
     progress: Progress | None = None,
     max_gap: float = DEFAULT_MAX_GAP_S,
+    channel: str | None = None,
 ) -> dict[str, Any]:
     """Replay one CAN log (any format of ``ptw_rt.io.logformats``); write the estimator's frames to ``out_log``
     (format from its extension) and the estimates to ``csv_path``.
@@ -283,7 +289,9 @@ def replay_log(
     Returns a summary: cycles, segments, frames in/out, rejected records by reason, reordered frames, time
     discontinuities, log and wall duration, x real time, modes seen, input health counters. A gap in the log's
     time stamps longer than ``max_gap`` seconds, or a jump back, ends a segment (``drive_log``), whatever the
-    format. Raises UserFacingError if the input cannot be opened, is not a CAN log or holds no frame
+    format. A log of several buses is read on one, as the daemon reads one: ``channel``, or the one its first
+    input frame is on; the frames on the others are skipped and counted (one warning line). Raises
+    UserFacingError if the input cannot be opened, is not a CAN log or holds no frame
     (``EmptyLogError``), ReplayOutputError (exit code ``EXIT_OUTPUT``) if an output cannot be written;
     ``progress`` (if given) is updated with the share of the log read.
     """
@@ -294,7 +302,8 @@ def replay_log(
     runner = runner or build_runner(config, design_file)
     frames_before = _input_frames(runner.tracker.summary())  # a runner given by the caller may have replayed others
     try:
-        blocks, stats = open_log_arrays(in_path)
+        bus = BusChoice(_Feed.input_ids_of(runner.tracker).tolist(), channel)
+        blocks, stats = open_log_arrays(in_path, bus=bus)
         # reported below, one line each, with what the replay did (bridged, or a new segment)
         stats.reader.warn_discontinuities = False
         first = next(blocks, None)
@@ -302,8 +311,13 @@ def replay_log(
         raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
     if first is None:
         blocks.close()
+        if channel is not None and stats.reader.other_channel_frames:
+            raise EmptyLogError(
+                f"{in_path}: no frame on --channel {channel} (the log's channels: "
+                f"{', '.join(stats.reader.other_channels)})"
+            )
         raise EmptyLogError(stats.no_frames_message())
-    channel = (stats.channel if stats.format == "candump" else None) or DEFAULT_CHANNEL
+    out_channel = (stats.reader.bus_read if stats.format == "candump" else None) or DEFAULT_CHANNEL
     tick = None if progress is None else (lambda: progress.update(stats.fraction))
     feed = _Feed(first, blocks, runner.tracker, str(in_path), max_gap, tick)
     drive = DriveStats()
@@ -319,7 +333,7 @@ def replay_log(
     created: list[Path] = []  # the outputs this replay opened: removed if it fails, never left half written
     finished = False
     try:
-        writer = _open_log_writer(out_log, channel)
+        writer = _open_log_writer(out_log, out_channel)
         created.append(out_log)
         if csv_path is not None:
             csv = _open_output(Path(csv_path), "--csv")
@@ -381,13 +395,12 @@ def replay_log(
         feed.report_bridged()
         if stats.reader.other_channel_frames:
             log.warning(
-                "%s: %d frames on other channels than %s's (%s): read as one bus with them; replay one bus's frames "
-                "(a candump log: grep ' %s ')",
+                "%s: %d frames on other channels (%s) than the bus read, %s (%s): skipped; --channel reads another",
                 in_path,
                 stats.reader.other_channel_frames,
-                stats.reader.first_channel,
                 ", ".join(stats.reader.other_channels),
-                stats.reader.first_channel,
+                bus.chosen,
+                "--channel" if channel is not None else "its first input frame's",
             )
         for close, path in ((writer.close, out_log), (None if csv is None else csv.close, csv_path)):
             if close is not None:
@@ -464,6 +477,8 @@ def replay_log(
         ],
         "skipped_frames": feed.skipped + sum(stats.skipped.values()) + drive.bad_stamps,
         "extended_input_frames": feed.extended_inputs,
+        "bus": stats.reader.bus_read,  # the channel read (a log of several buses: the inputs' or --channel)
+        "other_bus_frames": stats.reader.other_channel_frames,  # the frames on the others, skipped
         "log_duration_s": round(duration, 3),
         "wall_s": round(wall, 3),
         "x_real_time": round(duration / wall, 1) if wall > 0 else None,
@@ -656,7 +671,13 @@ def _failure(in_path: Path, exc: BaseException) -> dict[str, Any]:
 
 
 def replay_job(
-    in_path: Path, out: Path, csv: Path | None, config: Path, design_file: Path | None, max_gap: float
+    in_path: Path,
+    out: Path,
+    csv: Path | None,
+    config: Path,
+    design_file: Path | None,
+    max_gap: float,
+    channel: str | None = None,
 ) -> dict[str, Any]:
     """One log of a run of many, in a worker process or a Dask task: never raises (a bad log must not stop the
     others); the output's directory is made here (outputs mirror the input tree)."""
@@ -666,7 +687,7 @@ def replay_job(
                 target.parent.mkdir(parents=True, exist_ok=True)
         # the worker's config, design file and DBC loaded once, a runner of its own for this log (`shared_runner`)
         runner = shared_runner(config, design_file)
-        return replay_log(in_path, out, csv, config, design_file, runner=runner, max_gap=max_gap)
+        return replay_log(in_path, out, csv, config, design_file, runner=runner, max_gap=max_gap, channel=channel)
     except Exception as exc:
         return _failure(in_path, exc)
 
@@ -691,6 +712,18 @@ def _max_gap(args) -> float:
     return float(value)
 
 
+MAX_CHANNEL_CHARS = 64  # a bus's name in any log format: an interface (IFNAMSIZ 16), a number, a python-can name
+
+
+def _channel(args) -> str | None:
+    value = getattr(args, "channel", None)
+    if value is None:
+        return None
+    if not value or len(value) > MAX_CHANNEL_CHARS or not value.isprintable() or value != value.strip():
+        raise UserFacingError(f"--channel must be a bus's name as the log writes it, got {one_line(value[:80])}")
+    return value
+
+
 def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) -> int:
     """``ptw-rt replay``: one log -> ``--out`` is the output file; several logs or a directory -> ``--out`` is a
     directory (same file names), processed in parallel. One JSON summary line per log on stdout (``error``:
@@ -702,6 +735,7 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
     """
     err = err or sys.stderr
     max_gap = _max_gap(args)
+    channel = _channel(args)
     jobs = _plan(args)
     if out is None:  # the summaries on stdout, unless an output is stdout: a pipe to `cantools decode` (README)
         out = err if any(_is_stdout(target) for _, log, csv in jobs for target in (log, csv)) else sys.stdout
@@ -724,7 +758,7 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
             # shipping one log to a cluster would only add the transfer: say so rather than ignore the option
             err.write("replay: one log is replayed in this process; --dask spreads several logs over a cluster\n")
         bar = Progress(1.0, label=f"replay {one_line(src.name)}", stream=err, delay=0.5) if progress else None
-        result = replay_log(src, dst, csv, config, design_file, progress=bar, max_gap=max_gap)
+        result = replay_log(src, dst, csv, config, design_file, progress=bar, max_gap=max_gap, channel=channel)
         lines[0] = json.dumps(_short(result))
         if bar is not None:
             bar.finish()
@@ -751,7 +785,7 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
 
         fleet.run_jobs(
             replay_job,
-            [(src, dst, csv, config, design_file, max_gap) for src, dst, csv in jobs],
+            [(src, dst, csv, config, design_file, max_gap, channel) for src, dst, csv in jobs],
             workers=workers,
             dask=getattr(args, "dask", None),
             on_done=done,

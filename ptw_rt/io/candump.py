@@ -52,6 +52,7 @@ __all__ = [
     "Problem",
     "TimeRule",
     "BadTimestampError",
+    "BusChoice",
     "CandumpFileError",
     "CandumpReader",
     "CandumpWriter",
@@ -467,6 +468,26 @@ def _plain_columns(lines: list[str]) -> tuple[FrameArrays, tuple[str, ...]] | No
     return FrameArrays(times, ids, extended, lengths, data, channel, []), channels
 
 
+class BusChoice:
+    """Which bus (channel) of a log of several is read: the one named, or the one the first frame with an
+    id of ``input_ids`` is on (the inputs'; the daemon reads one bus). A frame that is not an input, before the
+    choice is made, is read whatever its bus: it changes nothing the estimator sees."""
+
+    def __init__(self, input_ids: Iterable[int] = (), name: str | None = None) -> None:
+        self.input_ids = frozenset(int(i) for i in input_ids)
+        self.input_ids_array = np.array(sorted(self.input_ids), dtype=np.int64)
+        self.name = name
+        self.chosen = name
+
+    def keeps(self, channel: str, frame_id: int) -> bool:
+        """Whether a frame on ``channel`` with ``frame_id`` is read (the first input's channel becomes the bus)."""
+        if self.chosen is None:
+            if frame_id not in self.input_ids:
+                return True
+            self.chosen = channel
+        return channel == self.chosen
+
+
 class TimeRule(Iterator[LogFrame]):
     """The time rule of the module docstring, for the frames of any log format, with the counts of what it
     skipped. A subclass supplies ``_items()``: the log's records in file order, each a ``LogFrame`` (with
@@ -508,8 +529,10 @@ class TimeRule(Iterator[LogFrame]):
         self.discontinuities = 0
         self.remote = 0  # remote frames left out by ``arrays`` (the per-frame iteration gives them)
         self.discontinuity_lines: list[tuple[int, float, float]] = []
-        # the channel (bus) of the first frame, and the frames on any other: a log of two buses is read as one (the
-        # same frames on can0 and can1 left every cycle INIT, silently), which the reader's user is told
+        # a log of several buses (`candump -L any`): with ``bus`` (a ``BusChoice``) the frames on the others are
+        # skipped (the same frames on can0 and can1 had left every cycle INIT, silently), else read as one bus;
+        # either way counted, and their channels named, for the reader's user
+        self.bus: BusChoice | None = None
         self.first_channel: str | None = None
         self.other_channel_frames = 0
         self.other_channels: list[str] = []  # their names, the first few
@@ -524,21 +547,69 @@ class TimeRule(Iterator[LogFrame]):
     def _items(self) -> Iterator[LogFrame | Problem]:
         raise NotImplementedError
 
-    def note_channel(self, channel: str, frames: int = 1) -> None:
-        """Count ``frames`` frames on ``channel`` against the log's first channel."""
+    @property
+    def bus_read(self) -> str | None:
+        """The channel whose frames are read: the bus chosen, else the first frame's."""
+        if self.bus is not None and self.bus.chosen is not None:
+            return self.bus.chosen
+        return self.first_channel
+
+    def _other_channel(self, channel: str, frames: int = 1) -> None:
+        self.other_channel_frames += frames
+        if channel not in self.other_channels and len(self.other_channels) < 4:
+            self.other_channels.append(channel)
+
+    def _on_bus(self, channel: str, frame_id: int) -> bool:
+        """Whether a frame is read (``bus``), counting it when it is on another channel."""
         if self.first_channel is None:
             self.first_channel = channel
-        elif channel != self.first_channel:
-            self.other_channel_frames += frames
-            if channel not in self.other_channels and len(self.other_channels) < 4:
-                self.other_channels.append(channel)
+        bus = self.bus
+        if bus is None:
+            if channel != self.first_channel:
+                self._other_channel(channel)
+            return True
+        if bus.keeps(channel, frame_id):
+            return True
+        self._other_channel(channel)
+        return False
+
+    def _bus_only(self, items: Iterator[LogFrame | Problem]) -> Iterator[LogFrame | Problem]:
+        """``items`` less the frames on other buses (``_on_bus``)."""
+        on_bus = self._on_bus
+        for item in items:
+            if item.__class__ is Problem or on_bus(item.channel, item.frame_id):  # type: ignore[union-attr]
+                yield item
+
+    def _bus_rows(self, frames: FrameArrays, channels: tuple[str, ...]) -> np.ndarray | None:
+        """The rows of a block of columns on the bus read (``_on_bus`` per frame, whole columns when the block is
+        of one channel); None: all of them."""
+        n = len(frames)
+        if not n:
+            return None
+        first = channels[0]
+        if channels.count(first) == n:  # one channel (C speed: the same object n times)
+            if self.first_channel is None:
+                self.first_channel = first
+            bus = self.bus
+            if bus is not None and bus.chosen is None:
+                hits = np.flatnonzero(np.isin(frames.ids, bus.input_ids_array))
+                if hits.size:
+                    bus.keeps(first, int(frames.ids[hits[0]]))
+            if bus is None or bus.chosen is None or bus.chosen == first:
+                if bus is None and first != self.first_channel:
+                    self._other_channel(first, n)
+                return None
+            self._other_channel(first, n)
+            return np.empty(0, dtype=np.int64)
+        keep = [self._on_bus(c, i) for c, i in zip(channels, frames.ids.tolist(), strict=True)]
+        return None if all(keep) else np.flatnonzero(keep)
 
     def _release(self) -> None:
         """Close what the reader opened (called once the records are read, or on ``close``)."""
 
     def _generate(self) -> Iterator[LogFrame]:
         try:
-            yield from self._rule(self._items())
+            yield from self._rule(self._bus_only(self._items()))
         finally:
             self._release()
 
@@ -824,9 +895,7 @@ class CandumpReader(TimeRule):
                 yield Problem(line_no, f"line longer than {MAX_LINE_CHARS} characters", line, "too_long")
                 continue
             try:
-                frame = parse_line(line, line_no)
-                self.note_channel(frame.channel)
-                yield frame
+                yield parse_line(line, line_no)
             except BadTimestampError as exc:
                 yield Problem(line_no, str(exc), line, "bad_timestamp")
             except ValueError as exc:
@@ -844,15 +913,17 @@ class CandumpReader(TimeRule):
                 line_no += len(block)
                 plain = _plain_columns(block)
                 if plain is not None:
-                    channels = plain[1]
-                    if channels.count(channels[0]) == len(channels):  # one channel (C speed: the same object n times)
-                        self.note_channel(channels[0], len(channels))
+                    frames, channels = plain
+                    rows = self._bus_rows(frames, channels)
+                    if rows is None:
+                        line_nos = np.arange(first + 1, line_no + 1)
                     else:
-                        for channel in channels:
-                            self.note_channel(channel)
-                    out = self._rule_columns(*plain, first)
+                        frames = FrameArrays(*(a[rows] for a in frames[:5]), frames.channel, [])
+                        channels = tuple(channels[r] for r in rows.tolist())
+                        line_nos = first + 1 + rows
+                    out = self._rule_columns(frames, channels, line_nos)
                 else:
-                    out = FrameArrays.of(*self._rule_records(self._block_items(block, first)))
+                    out = FrameArrays.of(*self._rule_records(self._bus_only(self._block_items(block, first))))
                 if len(out):
                     yield out
             tail = []
@@ -866,7 +937,7 @@ class CandumpReader(TimeRule):
         finally:
             self._release()
 
-    def _rule_columns(self, frames: FrameArrays, channels: tuple[str, ...], first_line: int) -> FrameArrays:
+    def _rule_columns(self, frames: FrameArrays, channels: tuple[str, ...], line_nos: np.ndarray) -> FrameArrays:
         """The time rule on a block of parsed lines: while a time base is accepted and no candidate pending, its
         fast path on whole columns (a window of frames at a time: each within the tolerances of the newest stamp
         before it is taken, as ``_one`` takes it); frame by frame (``_rule_records``) otherwise, for at least
@@ -893,7 +964,7 @@ class CandumpReader(TimeRule):
             stop = min(n, i + _SLOW_RUN)
             records = [
                 LogFrame(float(frames.times[r]), channels[r], int(frames.ids[r]),
-                         frames.data[r, : frames.lengths[r]].tobytes(), first_line + 1 + r, bool(frames.extended[r]))
+                         frames.data[r, : frames.lengths[r]].tobytes(), int(line_nos[r]), bool(frames.extended[r]))
                 for r in range(i, stop)
             ]  # fmt: skip
             parts.append(FrameArrays.of(*self._rule_records(records)))

@@ -49,6 +49,7 @@ from ptw_rt.errors import UserFacingError
 from ptw_rt.io import compressed, mf4_sandbox, sqlite_log
 from ptw_rt.io.candump import (
     MAX_LOG_BYTES,
+    BusChoice,
     CandumpFileError,
     CandumpReader,
     CandumpWriter,
@@ -63,6 +64,7 @@ from ptw_rt.io.candump import (
 from ptw_rt.untrusted import error_text, excerpt, file_size
 
 __all__ = [
+    "BusChoice",
     "EXTENSIONS",
     "FAMILIES",
     "FORMATS",
@@ -861,12 +863,14 @@ class _BlfReader(_MessageReader):
                     continue
                 ts = stamp / 1e5 if flags == 1 else stamp / 1e9
                 if obj_type in (blf.CAN_MESSAGE, blf.CAN_MESSAGE2):
-                    _, msg_flags, dlc, can_id, payload = can_msg.unpack_from(data, body)
+                    channel, msg_flags, dlc, can_id, payload = can_msg.unpack_from(data, body)
                     if msg_flags & blf.REMOTE_FLAG:
                         self._skip("remote")
                     else:
                         ident = can_id & 0x1FFFFFFF
-                        yield _frame(ts + start, 0, ident, payload[:dlc], record, bool(can_id & blf.CAN_MSG_EXT))
+                        extended = bool(can_id & blf.CAN_MSG_EXT)
+                        # the channel as python-can gives it (BLF counts from 1): a log of several buses
+                        yield _frame(ts + start, channel - 1, ident, payload[:dlc], record, extended)
                 elif obj_type == blf.CAN_ERROR_EXT:
                     self._skip("error")
                 elif obj_type in (blf.CAN_FD_MESSAGE, blf.CAN_FD_MESSAGE_64):
@@ -974,22 +978,24 @@ def open_log(
     fmt: str | None = None,
     max_warnings: int | None = None,
     max_bytes: int = MAX_LOG_BYTES,
+    bus: BusChoice | None = None,
     **rules: Any,
 ) -> tuple[Iterator[tuple[float, int, bytes, bool]], LogStats]:
     """The classic CAN data frames of the log at ``path`` as (timestamp, id, data, extended), in file order
     through the time rule, and the ``LogStats`` that fill while the iterator runs.
 
-    ``fmt``: one of ``FORMATS`` (default: ``detect_format``). ``rules``: the time rule's ``max_jump``,
+    ``fmt``: one of ``FORMATS`` (default: ``detect_format``). ``bus``: which bus of a log of several is read
+    (``BusChoice``; None: all, as one, counted in the reader's ``other_channel_frames``). ``rules``: the time
+    rule's ``max_jump``,
     ``reorder_tolerance``, ``confirm``. Raises ``CandumpFileError``/``LogFormatError`` (one line each) for a
     file that cannot be read at all; never raises on a bad record (counted in the stats) except when the
     iterator meets a header it cannot read at all (``LogFormatError``).
     """
-    reader, stats = _open_reader(Path(path), fmt, max_warnings, max_bytes, rules)
+    reader, stats = _open_reader(Path(path), fmt, max_warnings, max_bytes, bus, rules)
     return _frames(reader, stats), stats
 
 
 def _frames(reader: TimeRule, stats: LogStats) -> Iterator[tuple[float, int, bytes, bool]]:
-    counts_channels = stats.format != "candump"  # candump's reader counts them as it parses (`note_channel`)
     try:
         for f in reader:
             if f.is_remote:
@@ -997,8 +1003,6 @@ def _frames(reader: TimeRule, stats: LogStats) -> Iterator[tuple[float, int, byt
                 continue
             if stats.channel is None:
                 stats.channel = f.channel
-            if counts_channels:
-                reader.note_channel(f.channel)
             stats.line = f.line_no
             yield f.timestamp, f.frame_id, f.data, f.is_extended
     finally:
@@ -1012,21 +1016,22 @@ def open_log_arrays(
     max_warnings: int | None = None,
     max_bytes: int = MAX_LOG_BYTES,
     size: int = ARRAY_BLOCK_FRAMES,
+    bus: BusChoice | None = None,
     **rules: Any,
 ) -> tuple[Iterator[FrameArrays], LogStats]:
     """``open_log`` as blocks of columns (``FrameArrays``: the same frames in the same order, with the
     discontinuities of the time stamps that start in each block): a candump log parsed a block of lines at a
     time (``CandumpReader.arrays``), any other format's frames gathered ``size`` at a time."""
-    reader, stats = _open_reader(Path(path), fmt, max_warnings, max_bytes, rules)
+    reader, stats = _open_reader(Path(path), fmt, max_warnings, max_bytes, bus, rules)
     if stats.format == "candump":
         return _candump_arrays(reader, stats), stats  # type: ignore[arg-type]
     return _gathered(_frames(reader, stats), stats, size), stats
 
 
 def _open_reader(
-    path: Path, fmt: str | None, max_warnings: int | None, max_bytes: int, rules: dict[str, Any]
+    path: Path, fmt: str | None, max_warnings: int | None, max_bytes: int, bus: BusChoice | None, rules: dict[str, Any]
 ) -> tuple[TimeRule, LogStats]:
-    """The reader of the log's format (``detect_format`` when not given) and its stats."""
+    """The reader of the log's format (``detect_format`` when not given), reading ``bus``, and its stats."""
     if fmt is None:
         fmt, size = detect_format(path, max_bytes, warn=True)
     else:
@@ -1035,6 +1040,7 @@ def _open_reader(
         reader: TimeRule = CandumpReader(path, max_warnings=max_warnings, max_bytes=max_bytes, **rules)
     else:
         reader = _READERS[fmt](path, max_bytes, max_warnings=max_warnings, **rules)
+    reader.bus = bus
     stats = LogStats(path, fmt, size, reader)
     if fmt != "candump":
         stats.skipped = reader.skipped  # type: ignore[attr-defined]

@@ -590,6 +590,10 @@ class Daemon:
         self.state_note = f"restored learned {listed} from {path} (saved {state.saved_at})"
         if not state.same_config:
             self.state_note += "; saved with another payload (vehicle.added_mass): the same tyres and sensors"
+        if state.sensor_biases is None and state.accel_biases is not None:
+            # the daemon saves them with the four sensor biases only: a file edited or written elsewhere; they are
+            # the filter's offsets against those, so restored alone they would be learned values out of context
+            self.state_note += "; its accelerometer biases not restored: saved without the sensor biases"
         if state.steer_zero is not None and not steer_zero:
             self.state_note += (
                 f"; its steer zero was learned against count {state.steer_zero[0]:g}, the configuration now has "

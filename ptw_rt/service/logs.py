@@ -24,7 +24,7 @@ from typing import IO, Any
 from ptw_rt.core.layout import MODE_NAMES as _MODE_NAMES
 from ptw_rt.core.layout import REASON_NAMES as _REASON_NAMES
 from ptw_rt.errors import UserFacingError
-from ptw_rt.untrusted import one_line
+from ptw_rt.untrusted import log_line, one_line
 
 __all__ = [
     "FIELDS_ATTR",
@@ -72,15 +72,11 @@ def _iso_utc(created: float) -> str:
     return datetime.fromtimestamp(created, tz=timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
-def _one_line(text: str) -> str:
-    return text.replace("\r", "\\r").replace("\n", "\\n")
-
-
 class KeyValueFormatter(logging.Formatter):
     """``<ISO time> <LEVEL> <logger>: <message> key=value ...``, always exactly one line."""
 
     def format(self, record: logging.LogRecord) -> str:
-        parts = [_iso_utc(record.created), record.levelname, f"{record.name}:", _one_line(record.getMessage())]
+        parts = [_iso_utc(record.created), record.levelname, f"{record.name}:", record.getMessage()]
         kw = getattr(record, FIELDS_ATTR, None)
         if kw:
             parts.append(format_fields(kw))
@@ -88,7 +84,7 @@ class KeyValueFormatter(logging.Formatter):
             parts.append("exc=" + json.dumps(self.formatException(record.exc_info)))
         elif record.exc_text:
             parts.append("exc=" + json.dumps(record.exc_text))
-        return " ".join(parts)
+        return log_line(" ".join(parts))
 
 
 def _jsonable(v: Any) -> Any:

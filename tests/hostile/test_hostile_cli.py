@@ -62,6 +62,9 @@ def test_every_subcommand_refuses_hostile_files(hostile_configs, hostile_designs
         (["replay", hostile_logs["gap_2h"], "--out", out], 74),
         (["replay", hostile_logs["swapped_pairs"], "--out", out / "c.log", "--csv", "/dev/full"], 74),
         (["replay", log, "--out", out / "g.log", "--max-gap", "nan"], 2),
+        (["replay", log, "--out", out / "k.log", "--channel", "vcan0\nerror: forged"], 2),
+        (["replay", log, "--out", out / "k.log", "--channel", "c" * 100], 2),
+        (["replay", log, "--out", out / "k.log", "--channel", "nosuch"], 2),  # none of the log's buses
         (["demo", "--config", c["long_bad_text"], "--out", out / "demo"], 2),
         # within the schema's ranges, no design / no simulated rider: one line, not numpy's traceback
         (["design", "--config", c["grid_too_fine"], "--out", out / "d.npz"], 2),

@@ -425,7 +425,8 @@ def test_segment_lines_are_capped_like_the_readers_bad_lines(tmp_path, runner, c
 
 def test_a_log_of_two_buses_says_so(tmp_path, runner, caplog):
     """Every frame again on a second channel (`candump -L any` of two buses): read as one bus, every cycle stayed
-    INIT, exit 0 and nothing said (found by fuzzing). Now one line names the other channel and how to pick one."""
+    INIT, exit 0 and nothing said (found by fuzzing). Now the inputs' bus is read and one line names the other
+    channel and how to pick one (`test_logformats.py`: the estimates those of the one bus, in every format)."""
     lines = []
     for line in clean_log_lines(1.0):
         lines += [line, shifted([line], 0.0001)[0].replace(" vcan0 ", " vcan1 ")]
@@ -434,7 +435,7 @@ def test_a_log_of_two_buses_says_so(tmp_path, runner, caplog):
     with caplog.at_level(logging.WARNING):
         _replay(path, tmp_path, runner)
     said = _lines(caplog, "other channels")
-    assert len(said) == 1 and "300 frames on other channels than vcan0's (vcan1)" in said[0], said
+    assert len(said) == 1 and "300 frames on other channels (vcan1) than the bus read, vcan0" in said[0], said
     caplog.clear()
     single = tmp_path / "one_bus.log"
     single.write_text("\n".join(clean_log_lines(1.0)) + "\n")
