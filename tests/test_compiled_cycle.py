@@ -6,6 +6,7 @@ and clock statistics out, on a ride with every kind of bad input the rule and th
 
 from __future__ import annotations
 
+import io
 import math
 import random
 
@@ -202,13 +203,23 @@ def test_write_frames_equals_write_cycle(tmp_path, fixed_width):
     data = rng.integers(0, 256, size=(cycle_of.size, 8), dtype=np.uint8)
     a, b = tmp_path / "a.log", tmp_path / "b.log"
     with CandumpWriter(a, channel="vcan0") as w:
+        w.write(1.0, 0x123, b"\x01")  # text written before and after the block (bytes to the file's buffer)
         w.write_frames(times, cycle_of, ids, data, lengths)
         w.write_frames(times[:0], cycle_of[:0], [], data[:0], [])
+        w.write(2.0, 0x124, b"\x02")
     with CandumpWriter(b, channel="vcan0") as w:
+        w.write(1.0, 0x123, b"\x01")
         for c, now in enumerate(times.tolist()):
             rows = np.flatnonzero(cycle_of == c)
             w.write_cycle(now, [(ids[i], data[i, : lengths[i]].tobytes()) for i in rows])
+        w.write(2.0, 0x124, b"\x02")
     assert a.read_text() == b.read_text() and a.stat().st_size > 0
+    stream = io.StringIO()  # a stream without a byte buffer: the same text
+    with CandumpWriter(stream, channel="vcan0") as w:
+        w.write(1.0, 0x123, b"\x01")
+        w.write_frames(times, cycle_of, ids, data, lengths)
+        w.write(2.0, 0x124, b"\x02")
+    assert stream.getvalue() == b.read_text()
 
 
 def _as_columns(frames):

@@ -355,3 +355,38 @@ def test_a_design_whose_hash_is_right_but_whose_bounds_are_not_is_refused(tmp_pa
     np.savez_compressed(edited, **members)
     with pytest.raises(DesignFileError, match=f"its {member} .* is not what the configuration makes"):
         load_design_for(settings, edited)
+
+
+EDITED_GAINS = [
+    ("kf_K", 1e3, "fusion"),
+    ("tb_K_pub", -5.0, "tyre_bank"),
+    ("ad_Phi", 1.2, "adaptive"),
+    ("uh_Phi22", 1.5, "uihosmo"),
+]
+
+
+@pytest.mark.parametrize(("member", "factor", "observer"), EDITED_GAINS)
+def test_a_design_whose_gains_were_edited_is_refused_at_load(tmp_path, member, factor, observer):
+    """A design file with the configuration's hash and bounds but a gain edited (finite: x1000) passed every
+    check, `run --check-config` included, and the estimator ran on filters that diverge. Every observer's error
+    dynamics are checked stable at the grid speeds at load (numpy alone: the runtime has no scipy), as `design
+    --check` checks them; the shipped design's radii are those `check_design` reports."""
+    from ptw_rt.design.build import check_design
+    from ptw_rt.design.file import DesignFileError, error_dynamics_radii, load_design_for
+    from ptw_rt.paths import DEFAULT_CONFIG, DEFAULT_DESIGN
+    from ptw_rt.settings import load_settings
+
+    settings = load_settings(DEFAULT_CONFIG)
+    shipped = load_design_for(settings, DEFAULT_DESIGN)
+    radii, check = error_dynamics_radii(shipped), check_design(shipped)
+    assert radii["fusion"] == pytest.approx(max(check["fusion"]["spectral_radius"]), rel=1e-9)
+    assert radii["adaptive"] == pytest.approx(max(check["adaptive"]["spectral_radius"]), rel=1e-9)
+    assert radii["tyre_bank"] == pytest.approx(check["tyre_bank"]["max_spectral_radius"], rel=1e-9)
+    assert max(radii.values()) < 1.0
+    with np.load(DEFAULT_DESIGN, allow_pickle=False) as npz:
+        members = {name: npz[name] for name in npz.files}
+    members[member] = members[member] * factor
+    edited = tmp_path / "edited.npz"
+    np.savez_compressed(edited, **members)
+    with pytest.raises(DesignFileError, match=f"unstable error dynamics .*{observer} "):
+        load_design_for(settings, edited)

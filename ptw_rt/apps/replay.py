@@ -650,6 +650,7 @@ _SHORT_KEYS = (
     "late_frames",
     "discontinuities",
     "skipped_frames",
+    "other_bus_frames",
     "x_real_time",
     "modes",
 )

@@ -391,7 +391,48 @@ def load_design_for(settings, path: str | Path, config_path: str | Path = "CONFI
     est = settings.estimator
     design = load_design(path, settings.config_hash, config_path, est.sample_time, est.speed_grid_ms())
     _check_bounds(design, settings, path, config_path)
+    _check_stable(design, path, config_path)
     return design
+
+
+def error_dynamics_radii(design: DesignData) -> dict[str, float]:
+    """The largest spectral radius of each observer's discrete error dynamics at the grid speeds: the UIHOSMO
+    (diagnostics and on the sensors: pre-observer and zero dynamics), the adaptive observer, the fusion filter
+    and every tyre hypothesis's evidence and publishing filters (e = Phi (I - K C) e). numpy alone, batched."""
+    C = design.kf_C
+
+    def rho(M: np.ndarray) -> float:
+        if not M.size:
+            return 0.0
+        if not np.all(np.isfinite(M)):
+            return math.inf
+        return float(np.max(np.abs(np.linalg.eigvals(M))))
+
+    def fusion(Phi: np.ndarray, K: np.ndarray) -> np.ndarray:
+        return Phi @ (np.eye(Phi.shape[-1]) - K @ C)
+
+    return {
+        "uihosmo": max(rho(design.uh_Phi), rho(design.uh_Phi22)),
+        "uio_sensors": max(rho(design.us_Phi), rho(design.us_Phi22)),
+        "adaptive": rho(design.ad_Phi),
+        "fusion": rho(fusion(design.kf_Phi, design.kf_K)),
+        "tyre_bank": max(rho(fusion(design.tb_Phi, design.tb_K)), rho(fusion(design.tb_Phi, design.tb_K_pub))),
+    }
+
+
+def _check_stable(design: DesignData, path: str | Path, config_path: str | Path) -> None:
+    """Every observer stable at every grid speed (``error_dynamics_radii`` below 1; ``ptw-rt design --check`` also
+    checks between them): a design file with the configuration's hash and bounds but gains edited (finite: x1000)
+    passed every check, and the estimator ran on filters that diverge."""
+    radii = error_dynamics_radii(design)
+    unstable = {name: r for name, r in radii.items() if not r < 1.0}
+    if unstable:
+        hint = REGENERATE_HINT.format(config=config_path, path=path)
+        what = ", ".join(f"{name} {r:.4g}" for name, r in unstable.items())
+        raise DesignFileError(
+            f"{path}: unstable error dynamics at a grid speed (spectral radius {what}; a designed file's are below 1): "
+            f"edited or corrupt; {hint}"
+        )
 
 
 def _check_bounds(design: DesignData, settings, path: str | Path, config_path: str | Path) -> None:

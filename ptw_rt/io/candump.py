@@ -304,7 +304,7 @@ class CandumpWriter:
                 digits.view(np.uint8).reshape(ids.size, 2 * _MAX_DATA),
                 np.full((ids.size, 1), ord("\n"), dtype=np.uint8),
             )
-            self._stream.write(np.concatenate(columns, axis=1).tobytes().decode("ascii"))
+            self._write_ascii(np.concatenate(columns, axis=1).tobytes())
             self.lines_written += ids.size
             return
         hexes = digits.tobytes().decode("ascii")
@@ -319,6 +319,17 @@ class CandumpWriter:
             )
         )
         self.lines_written += ids.size
+
+    def _write_ascii(self, block: bytes) -> None:
+        """ASCII bytes written as they are to a file's byte buffer (its text flushed first, so the order holds),
+        not decoded to text and encoded again (a tenth of a 20-min replay's output time); as text to a stream
+        without one."""
+        buffer = getattr(self._stream, "buffer", None)
+        if buffer is None:
+            self._stream.write(block.decode("ascii"))
+            return
+        self._stream.flush()
+        buffer.write(block)
 
     def write_frame(self, frame: LogFrame) -> None:
         """Write a frame read from another log (keeps its time stamp and channel)."""
