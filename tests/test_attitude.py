@@ -477,3 +477,41 @@ def test_the_grade_odds_favour_two_sensors_that_agree_and_not_one_alone():
     assert att._grade_odds(0.0, 0.02, var_seen, var_felt, var_rate) < grade  # the accelerometer's
     assert att._grade_odds(0.02, -0.01, var_seen, var_felt, var_rate) < 0.0  # the two disagree
     assert att._grade_odds(0.0, 0.0, var_seen, var_felt, var_rate) < 0.0
+
+
+@pytest.mark.parametrize("fix_older_than_imu", [-0.004, 0.0, 0.0063])
+def test_the_course_is_compared_with_the_heading_and_sideslip_of_its_epoch(fix_older_than_imu):
+    """The course describes the vehicle the receiver's latency before its frame; the filter's state is the previous
+    IMU sample's. Whole cycles put the heading 12 ms before that epoch on the simulator's phases, and the sideslip
+    was the current one (`_course_epoch`): here each cycle turned the heading by k mrad and the sideslip angle of
+    k cycles back was k mrad, so the epoch's are read off exactly, between cycles too."""
+    settings = load_settings(DEFAULT_CONFIG)
+    prm = att.attitude_params(DT, G, 0.5, 0.0, settings.estimator.attitude, 0.1)
+    st = att.new_state()
+    for k in range(att.MAX_LATENCY_CYCLES):
+        st[att.ST_PSI_HIST + k] = 0.001 * (k + 1)  # the increment into the state k cycles back
+        st[att.ST_BETA_HIST + k] = 0.001 * (k + 1)  # the sideslip angle k + 1 cycles back
+    psi, beta = 1.0, 0.0
+    delayed_psi, delayed_beta = att._course_epoch(st, prm, psi, beta, fix_older_than_imu)
+    delay = (0.1 - DT + fix_older_than_imu) / DT  # cycles back from the state's instant
+    j, frac = int(delay), delay - int(delay)
+    assert delayed_psi == pytest.approx(psi - 0.001 * (j * (j + 1) / 2 + frac * (j + 1)), abs=1e-12)
+    assert delayed_beta == pytest.approx(0.001 * delay, abs=1e-12)
+
+
+def test_a_noise_free_slalom_reads_the_tyres_it_rides_on():
+    """The slalom read the tyres 4.5 % stiff with exact sensors: the GPS course was compared with the heading of 12
+    ms before its epoch and with the current sideslip, and in a slalom both errors go with the turns; the yaw gyro's
+    bias followed them (sd 3.7e-4 rad/s where its truth is constant) and the ground yaw rate with it, which the tyre
+    filters are most sensitive to (docs/estimator.md, "The course at its own instant")."""
+    from ptw_rt.core import layout as L  # noqa: N812
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import Perturbation, simulate
+
+    ride = simulate("slalom_30", perturbation=Perturbation(imu_noise=0.01, imu_bias=0.0, rider_noise=0.01))
+    ev = evaluate_ride(ride)
+    second_half = ev.t > ev.t[-1] / 2
+    nominal = load_settings(DEFAULT_CONFIG).vehicle.nominal_stiffness()[0]  # front cornering, N/rad
+    truth = ev.truth["c_alpha_front"][second_half] / nominal
+    error = float(np.mean(ev.estimates[second_half, L.E_TYRE_SCALE] / truth) - 1.0)
+    assert abs(error) < 0.02, f"tyres read {100 * error:+.2f} % over the second half"

@@ -452,8 +452,9 @@ def test_a_silent_encoder_or_imu_is_coasted_through_unpublished_as_valid_and_the
 
     # over the silences, after the short ones, and after the long ones: a restart waits for fresh rates and starts
     # from its steady response to them (`kalman.SETTLE_STEPS`; started from zero forces and torque, on the held
-    # rates: 20.2 %, and 0 then 20-50 N m off after the rates' silence)
-    spans = [(12.0, 13.0, 0.25), (16.0, 16.3, 0.35), (13.0, 16.0, 0.15), (23.1, 26.0, 0.18), (27.1, 28.0, 0.18)]
+    # rates: 20.2 %, and 0 then 20-50 N m off after the rates' silence). After the rates' 1 s silence: 17.9 % of the
+    # peak, 18.9 % since the GPS course is compared at its own instant (the heading's path moved; 2.15 N m)
+    spans = [(12.0, 13.0, 0.25), (16.0, 16.3, 0.35), (13.0, 16.0, 0.15), (23.1, 26.0, 0.18), (27.1, 28.0, 0.19)]
     for a, b, limit in spans:
         m = within(a, b)
         assert (torque[m] != 0.0).all()

@@ -91,6 +91,9 @@ STATE = Layout(
     psi_init=1,  # 1 once the heading has been set from a GPS course
     prev=N_PREV,  # inputs of the previous cycle (processed one cycle late)
     psi_hist=MAX_LATENCY_CYCLES,  # heading increments of the last LATENCY_CYCLES cycles (GPS latency)
+    # sideslip angles v_y / u of the last cycles (newest first), as the measurements left them: the course describes
+    # the vehicle `latency` ago, its sideslip as well as its heading
+    beta_hist=MAX_LATENCY_CYCLES,
     psi_head=1,
     rejected=1,  # consecutive rejected lateral-force innovations
     quiet=1,  # consecutive lateral-force innovations applied and within QUIET_NU (when a reopened roll is safe)
@@ -139,6 +142,7 @@ STATE = Layout(
     ST_PSI_INIT,
     ST_PREV,
     ST_PSI_HIST,
+    ST_BETA_HIST,
     ST_PSI_HEAD,
     ST_REJECTED,
     ST_QUIET,
@@ -353,6 +357,7 @@ PARAMS = Layout(
     r_course=1,  # rad, GPS course noise at speed
     course_min_speed=1,  # m/s, below: course not used
     latency_cycles=1,  # GPS latency in cycles
+    latency=1,  # s, GPS latency (the course's instant to the millisecond: `_course_epoch`)
     gate=1,  # innovation gate [standard deviations]
     r_standstill_rate=1,  # rad/s, gyro noise at standstill (zero-rate update)
     init_roll_sd=1,  # rad
@@ -389,6 +394,7 @@ PARAMS = Layout(
     A_R_COURSE,
     A_COURSE_MIN_SPEED,
     A_LATENCY_CYCLES,
+    A_LATENCY,
     A_GATE,
     A_R_STANDSTILL_RATE,
     A_INIT_ROLL_SD,
@@ -504,6 +510,7 @@ def attitude_params(
     prm[A_R_COURSE] = math.radians(tuning.course_noise_deg)
     prm[A_COURSE_MIN_SPEED] = tuning.course_min_speed
     prm[A_LATENCY_CYCLES] = min(MAX_LATENCY_CYCLES, max(0, round(gps_latency / dt)))
+    prm[A_LATENCY] = gps_latency
     prm[A_GATE] = tuning.innovation_gate
     prm[A_R_STANDSTILL_RATE] = tuning.standstill_rate_noise
     prm[A_INIT_ROLL_SD] = tuning.initial_roll_sd
@@ -833,6 +840,7 @@ def _reset_dynamic(st: np.ndarray, prm: np.ndarray, roll: float) -> None:
     st[ST_IMU_FRESH_RUN] = 0.0
     for k in range(MAX_LATENCY_CYCLES):
         st[ST_PSI_HIST + k] = 0.0
+        st[ST_BETA_HIST + k] = 0.0
     st[ST_INIT] = 1.0
 
 
@@ -900,6 +908,32 @@ def _corner_excess(phi: float, prm: np.ndarray) -> float:
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _course_epoch(
+    st: np.ndarray, prm: np.ndarray, psi: float, beta: float, fix_older_than_imu: float
+) -> tuple[float, float]:
+    """The heading and sideslip angle the filter had at the GPS course's epoch: the receiver's latency before its
+    frame, which came `fix_older_than_imu` s before the newest IMU frame; the state is the previous IMU sample's (the
+    measurements go one cycle late), and the histories hold each cycle's heading increment and sideslip angle.
+
+    Whole cycles alone (the state's instant less the latency, rounded) put the heading 12 ms before the course's
+    epoch on the simulator's phases, and the sideslip was today's: in a 30 km/h slalom both errors go with the turn,
+    the yaw gyro's bias moved in time with it and the tyres read 4.5 % stiff (`docs/estimator.md`, "The course at
+    its own instant")."""
+    dt = prm[A_DT]
+    delay = (prm[A_LATENCY] - dt + fix_older_than_imu) / dt
+    delay = min(max(delay, 0.0), MAX_LATENCY_CYCLES - 2.0)
+    j = int(delay)
+    frac = delay - j
+    delayed_psi = psi
+    for k in range(j):
+        delayed_psi -= st[ST_PSI_HIST + k]
+    delayed_psi -= frac * st[ST_PSI_HIST + j]
+    beta_j = beta if j == 0 else st[ST_BETA_HIST + j - 1]
+    beta_next = st[ST_BETA_HIST + j]
+    return delayed_psi, beta_j + frac * (beta_next - beta_j)
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
 def attitude_step(
     st: np.ndarray,
     out: np.ndarray,
@@ -921,6 +955,7 @@ def attitude_step(
     imu_fresh: bool = False,
     accel_x_offset: float = math.nan,
     accel_x_offset_age: float = 0.0,
+    fix_older_than_imu: float = 0.0,
 ) -> None:
     """One cycle. p, q, r: body rates [rad/s]; f_y, f_z: body specific force [m/s^2]; u: forward speed and
     u_sd its standard deviation [m/s]; course [rad] valid when course_new (a fresh GPS fix at speed);
@@ -1133,13 +1168,10 @@ def attitude_step(
             _update(st, H, -x[X_VY], STRAIGHT_SIDESLIP_SD**2 * STRAIGHT_SIDESLIP_TIME / dt, gate)
 
     # ---- 2. GPS course (describes the vehicle `latency` cycles ago) ----
-    n_lat = int(prm[A_LATENCY_CYCLES])
     if course_new and u >= prm[A_COURSE_MIN_SPEED]:
-        delayed_psi = x[X_PSI]
-        for k in range(n_lat):
-            delayed_psi -= st[ST_PSI_HIST + k]
+        delayed_psi, delayed_beta = _course_epoch(st, prm, x[X_PSI], x[X_VY] / u, fix_older_than_imu)
         if st[ST_PSI_INIT] == 0.0:
-            _set_uncorrelated(x, P, X_PSI, course - x[X_VY] / u + (x[X_PSI] - delayed_psi), prm[A_R_COURSE])
+            _set_uncorrelated(x, P, X_PSI, course - delayed_beta + (x[X_PSI] - delayed_psi), prm[A_R_COURSE])
             st[ST_PSI_INIT] = 1.0
             st[ST_COURSE_REJECTED] = 0.0
         else:
@@ -1149,7 +1181,7 @@ def attitude_step(
             # in a long hard corner the vehicle slides steadily sideways (its rear slip angle); with no tyre model
             # here that sideslip is indistinguishable from a heading error, so beyond the dead zone it is noise
             beta_sd = prm[A_COURSE_SIDESLIP_PER_ACCEL] * _corner_excess(x[X_PHI], prm)
-            if _update(st, H, _wrap(course - delayed_psi - x[X_VY] / u), prm[A_R_COURSE] ** 2 + beta_sd**2, gate):
+            if _update(st, H, _wrap(course - delayed_psi - delayed_beta), prm[A_R_COURSE] ** 2 + beta_sd**2, gate):
                 st[ST_COURSE_REJECTED] = 0.0
             else:
                 st[ST_COURSE_REJECTED] += 1.0
@@ -1165,6 +1197,10 @@ def attitude_step(
             course_fix = 1.0
 
     roll_correction = x[X_PHI] - phi_predicted
+    # the sideslip angle of the previous cycle's instant, as its measurements left it (newest first)
+    for k in range(MAX_LATENCY_CYCLES - 1, 0, -1):
+        st[ST_BETA_HIST + k] = st[ST_BETA_HIST + k - 1]
+    st[ST_BETA_HIST] = x[X_VY] / u if u > 0.0 else 0.0
 
     # ---- 3. predict to this cycle: trapezoidal integration of the previous and this cycle's rates (both are
     # known; the rectangle rule's dt^2 phi''/2 per step adds up to ~0.2 deg in a quick lane change) ----

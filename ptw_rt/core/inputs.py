@@ -32,9 +32,11 @@ from ptw_rt.core.layout import (
     S_ACCEL_Y,
     S_ACCEL_Z,
     S_FRESH,
+    S_GPS_AGE,
     S_GPS_COURSE,
     S_GPS_FIX,
     S_GPS_SPEED,
+    S_IMU_AGE,
     S_INPUT_REASONS,
     S_PITCH_RATE_BODY,
     S_ROLL_RATE_BODY,
@@ -148,6 +150,9 @@ OUTPUTS = Layout(
     gps_age=1,  # s since the last usable fix
     course=1,  # rad, GPS course over ground wrapped to (-pi, pi] (0 when course_new is 0)
     course_new=1,  # 1: a usable course arrived this cycle
+    # s by which the fix's frame is older than the IMU's (its epoch is the receiver's latency before that): the course
+    # is compared with the heading at its own instant, to the millisecond (0 without a new course)
+    fix_older_than_imu=1,
     imu_fresh=1,  # 1: new IMU_Rates and IMU_Accel frames arrived this cycle, both sound (new samples, not re-read)
 )
 (
@@ -165,6 +170,7 @@ OUTPUTS = Layout(
     OUT_GPS_AGE,
     OUT_COURSE,
     OUT_COURSE_NEW,
+    OUT_FIX_OLDER_THAN_IMU,
     OUT_IMU_FRESH,
 ) = OUTPUTS.offsets
 
@@ -384,6 +390,8 @@ def inputs_stage(sample: np.ndarray, st: np.ndarray, prm: np.ndarray, out: np.nd
     out[OUT_GPS_AGE] = st[ST_GPS_AGE]
     out[OUT_COURSE] = _wrap_pi(course)
     out[OUT_COURSE_NEW] = 1.0 if course_new else 0.0
+    lag = sample[S_GPS_AGE] - sample[S_IMU_AGE]
+    out[OUT_FIX_OLDER_THAN_IMU] = min(max(lag, -2.0 * dt), 2.0 * dt) if course_new and math.isfinite(lag) else 0.0
     imu = MSG_IMU_RATES | MSG_IMU_ACCEL
     # ... and one cycle after the last: after missed cycles (an overrun) the newest samples are not the next ones, and
     # their change is not one period's (docs/estimator.md, "The step check learns its noise")

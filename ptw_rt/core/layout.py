@@ -28,7 +28,8 @@ S_GPS_COURSE = 13  # deg, course over ground (0..360, clockwise from north)
 S_IMU_AGE = 14  # s from the newest IMU_Rates frame's arrival to the cycle's time (latency compensation)
 S_SUSPECT = 15  # MSG_* bits: a frame of that message came with a broken rolling counter this cycle (not trusted)
 S_STEER_AGE = 16  # s from the newest Steer_Encoder frame's arrival to the cycle's time (aligned with the IMU's)
-SAMPLE_SIZE = 17
+S_GPS_AGE = 17  # s from the newest GPS_Velocity frame's (or serial fix's) arrival to the cycle's time
+SAMPLE_SIZE = 18
 
 # input messages, bit order of EST_Status.SensorTimeouts
 MSG_IMU_RATES = 1

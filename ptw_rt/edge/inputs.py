@@ -89,6 +89,7 @@ def tracker_params(codec: FrameCodec, stale_after_periods: float) -> tuple[np.nd
             p[tr.TP_SLOT + base + layout.index[signal]] = slot
     p[tr.TP_IMU] = INPUT_NAMES.index("IMU_Rates")
     p[tr.TP_STEER] = INPUT_NAMES.index("Steer_Encoder")
+    p[tr.TP_GPS] = INPUT_NAMES.index("GPS_Velocity")
     return p, tuple(layouts)
 
 

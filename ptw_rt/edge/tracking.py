@@ -32,6 +32,7 @@ from ptw_rt.core.layout import (
     REASON_DECODE_ERRORS,
     REASON_OUT_OF_RANGE,
     S_FRESH,
+    S_GPS_AGE,
     S_IMU_AGE,
     S_INPUT_REASONS,
     S_STALE,
@@ -104,6 +105,7 @@ PARAMS = Layout(
     slot=N_INPUTS * MAX_SIGNALS,  # Sample index signal j is copied to, -1: none
     imu=1,  # the input whose age is the Sample's IMU age
     steer=1,  # the input whose age is the Sample's steer age
+    gps=1,  # the input whose age is the Sample's GPS age
     frozen_after=N_INPUTS,  # repeated payloads after which a frame is not fresh (0: never, a value may hold)
     crc_pos=N_INPUTS,  # position of its CRC among its signals, -1: none (it changes with the counter)
 )
@@ -119,6 +121,7 @@ PARAMS = Layout(
     TP_SLOT,
     TP_IMU,
     TP_STEER,
+    TP_GPS,
     TP_FROZEN_AFTER,
     TP_CRC_POS,
 ) = PARAMS.offsets
@@ -254,6 +257,8 @@ def track_fill(state: np.ndarray, params: np.ndarray, sample: np.ndarray, now: f
     state[row + S_IMU_AGE] = min(max(age, 0.0), MAX_INPUT_AGE)
     age = now - state[TR_LAST_VALID + int(params[TP_STEER])]
     state[row + S_STEER_AGE] = min(max(age, 0.0), MAX_INPUT_AGE)
+    age = now - state[TR_LAST_VALID + int(params[TP_GPS])]
+    state[row + S_GPS_AGE] = min(max(age, 0.0), MAX_INPUT_AGE)
     state[row + S_SUSPECT] = state[TR_SUSPECT]
     for i in range(SAMPLE_SIZE):
         sample[i] = state[row + i]
