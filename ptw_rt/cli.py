@@ -156,6 +156,12 @@ def _bench(args) -> int:
     return run_bench(args)
 
 
+def _directory(text: str) -> Path:
+    if not text.strip():  # Path("") is the current directory: `simulate --out ''` wrote the ride there
+        raise argparse.ArgumentTypeError("expected a directory, got an empty name")
+    return Path(text)
+
+
 def _speeds(text: str) -> list[float]:
     try:
         values = [float(s) for s in text.split(",") if s.strip()]
@@ -265,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--scenario", help="scenario name (see --list)")
     p.add_argument("--list", action="store_true", help="list scenarios with a description and exit")
-    p.add_argument("--out", type=Path, default=Path("out"), help="output directory (default: %(default)s)")
+    p.add_argument("--out", type=_directory, default=Path("out"), help="output directory (default: %(default)s)")
     p.add_argument("--seed", type=int, default=None, help="noise/bias seed (default: the scenario's own)")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's own)")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="vehicle YAML")

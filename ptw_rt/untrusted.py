@@ -17,10 +17,13 @@ raised as the reader's own error class (``error=``), which the CLI prints with e
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import reprlib
 import stat
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -69,6 +72,50 @@ def check_replaceable(path: str | Path) -> None:
         return
     if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
         raise OSError(errno.EEXIST, f"exists and is {file_kind(mode)}, not a file to replace", str(path))
+
+
+def check_output_file(path: str | Path) -> None:
+    """An output opened for writing in place (not renamed over) must not be a FIFO nobody reads, which the open
+    waits on for ever (`simulate`, `report` and `demo` hung on one), or a directory; ``OSError`` (one line)
+    otherwise. A pipe someone reads (``/dev/stdout | ...``) and a device such as ``/dev/null`` are written."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return  # nothing there (or a path the open itself will refuse, in one line)
+    if stat.S_ISDIR(mode):
+        raise OSError(errno.EISDIR, "is a directory", str(path))
+    if stat.S_ISFIFO(mode) and not fifo_has_reader(path):
+        raise OSError(errno.ENXIO, "is a FIFO (named pipe) with no reader; write to a file", str(path))
+
+
+def fifo_has_reader(fifo: str | Path) -> bool:
+    """Whether a FIFO has a reader: the open of one someone reads succeeds at once, of one nobody reads it would
+    block (ENXIO without blocking)."""
+    try:
+        fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+    except OSError:
+        return False
+    os.close(fd)
+    return True
+
+
+@contextlib.contextmanager
+def replacing(path: str | Path, mode: str = "wb", **open_kw: Any) -> Iterator[IO[Any]]:
+    """A new file to write, renamed over ``path`` when the block ends (``check_replaceable``: a regular file, a
+    symlink or nothing there), removed if it raises. The temporary file is a new one of a unique name
+    (``tempfile.mkstemp``, O_EXCL): a fixed ``NAME.tmp`` followed a symlink planted there (`design` wrote its zip
+    into the link's target) and waited for ever on a FIFO."""
+    path = Path(path)
+    check_replaceable(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode, **open_kw) as fh:
+            yield fh
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 def same_file(a: str | Path, b: str | Path) -> bool:

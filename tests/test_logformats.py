@@ -948,3 +948,44 @@ def test_a_log_of_two_buses_is_replayed_on_the_inputs_bus(ride, replays, fmt, tm
         assert summary["bus"] == read and summary["other_bus_frames"] == frames + 1
     with pytest.raises(EmptyLogError, match="no frame on --channel nosuch"):
         replay_log(path, tmp_path / "none.log", None, DEFAULT_CONFIG, channel="nosuch")
+
+
+@pytest.mark.parametrize(
+    "stray",
+    ["can9 100#3000D1FF22000C", "can9 100#1F00DEFF45", "can9 00000100#3000D1FF22000C", "can9 100#R"],
+    ids=["an input frame", "a short one", "a 29-bit one", "a remote one"],
+)
+def test_one_stray_frame_ahead_of_the_ride_does_not_choose_the_bus(ride, replays, stray, tmp_path):
+    """The bus was the one of the first frame with an input's id: one such frame of another bus ahead of a ride (a
+    valid-looking one, a short one, a 29-bit or a remote one) had the whole ride skipped as another bus, or the log
+    refused (found by fuzzing). The bus is the one with the most input frames of the inputs' lengths."""
+    lines = ride["candump"].read_text().splitlines()
+    stamp = lines[0].split(")")[0] + ")"
+    path = tmp_path / "stray.log"
+    path.write_text("\n".join([f"{stamp} {stray}", *lines]) + "\n")
+    csv = tmp_path / "stray.csv"
+    summary = replay_log(path, tmp_path / "stray.out.log", csv, DEFAULT_CONFIG)
+    assert summary["bus"] == "vcan0" and summary["frames_in"] == len(lines)
+    assert _estimates(csv) == _estimates(replays["candump"][1])
+
+
+@pytest.mark.parametrize("token", ["abc", "-1", "0x2", "1e3", "ä"])
+def test_an_asc_frame_whose_channel_is_no_number_is_counted(ride, replays, token, tmp_path):
+    """A frame line of an ASC file whose channel is not a number was dropped without a word (python-can's reader
+    skips it as it skips events): a second channel written as `abc` lost every frame on it, uncounted, and a file of
+    only such lines was "empty" (found by fuzzing). Such lines are malformed now; event lines are not."""
+    lines = ride["asc"].read_text(encoding="utf-8").splitlines()
+    out_lines, frames = [], 0
+    for line in lines:
+        out_lines.append(line)
+        fields = line.split(None, 2)
+        if len(fields) == 3 and fields[1] == "1" and " Rx " in line:
+            out_lines.append(f" {fields[0]} {token}  {fields[2]}")
+            frames += 1
+    out_lines.insert(6, " 0.000100 ErrorFrame")  # an event: not a frame, not malformed
+    path = tmp_path / "odd_channel.asc"
+    path.write_text("\n".join(out_lines) + "\n", encoding="utf-8")
+    csv = tmp_path / "odd.csv"
+    summary = replay_log(path, tmp_path / "odd.out.log", csv, DEFAULT_CONFIG)
+    assert summary["malformed_lines"] == frames
+    assert _estimates(csv) == _estimates(replays["asc"][1])

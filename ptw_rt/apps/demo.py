@@ -36,11 +36,12 @@ import can
 import numpy as np
 
 from ptw_rt.core.layout import MODE_NAMES, MODE_VALID
-from ptw_rt.errors import UserFacingError
+from ptw_rt.errors import UserFacingError, output_error
 from ptw_rt.io.candump import CandumpWriter
 from ptw_rt.io.dbc import FrameCodec, FrameDecodeError
 from ptw_rt.io.e2e import CounterChecker, P11Status
 from ptw_rt.paths import DEFAULT_CONFIG
+from ptw_rt.untrusted import check_output_file, one_line
 
 __all__ = ["run_demo"]
 
@@ -233,6 +234,12 @@ def run_demo(args) -> int:
         sys.stderr.write(text + "\n")
         sys.stderr.flush()
 
+    outputs_path = out / f"{scenario.name}.outputs.log"
+    try:  # written at the end: a FIFO nobody reads there waited for ever after the whole ride
+        check_output_file(outputs_path)
+    except OSError as exc:
+        raise output_error(outputs_path, exc) from None
+
     # ---- 1. the ride
     note(f"simulating {scenario.name} ({duration:g} s of ride) ...")
     ride = simulate(scenario.name, duration=duration, vehicle=config, progress=tty)
@@ -320,7 +327,6 @@ def run_demo(args) -> int:
 
     # ---- the received outputs, on the ride's clock
     t_start = player.t_start
-    outputs_path = out / f"{ride.scenario}.outputs.log"
     with CandumpWriter(outputs_path, channel=LOG_CHANNEL) as w:
         for now, fid, data in listener.outputs:
             w.write(round(ride.epoch + (now - t_start) * speed, 6), fid, data)
@@ -339,11 +345,11 @@ def run_demo(args) -> int:
         note("writing the report (offline replay of the same log) ...")
         write_report(evaluate_ride(ride, config), report_dir)
 
-    print(f"ride log:     {paths['log']}")
-    print(f"truth:        {paths['truth']}")
-    print(f"outputs log:  {outputs_path} (received EST_* frames, candump -L, ride clock)")
+    print(f"ride log:     {one_line(str(paths['log']))}")
+    print(f"truth:        {one_line(str(paths['truth']))}")
+    print(f"outputs log:  {one_line(str(outputs_path))} (received EST_* frames, candump -L, ride clock)")
     if state_file.exists():
-        print(f"state file:   {state_file} (learned tyre stiffness)")
+        print(f"state file:   {one_line(str(state_file))} (learned tyre stiffness)")
     else:
         print(
             f"state file:   not written: the tyre stiffness was not published valid when the daemon stopped "
@@ -351,7 +357,7 @@ def run_demo(args) -> int:
             'docs/estimator.md, "Tyres")'
         )
     if report_dir is not None:
-        print(f"report:       {report_dir}/ (summary.md, *.png)")
+        print(f"report:       {one_line(str(report_dir))}/ (summary.md, *.png)")
     print(f"wall time:    {time.monotonic() - wall0:.1f} s")
     return rc
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import itertools
 import math
-import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -27,7 +26,7 @@ from ptw_rt.core.layout import MODE_NAMES
 from ptw_rt.errors import UserFacingError
 from ptw_rt.io.logformats import SNIFF_BYTES, sniff
 from ptw_rt.parallel import completed_in_processes
-from ptw_rt.untrusted import UntrustedFileError, decode_utf8, read_bounded, short_text
+from ptw_rt.untrusted import UntrustedFileError, decode_utf8, read_bounded, replacing, short_text
 
 __all__ = ["FLEET_COLUMNS", "fleet_row", "read_list_file", "run_jobs", "write_fleet_summary"]
 
@@ -248,17 +247,18 @@ def fleet_row(r: dict[str, Any]) -> tuple[Any, ...]:
     return tuple(row.values())
 
 
+SUMMARY_NAMES = ("fleet.csv", "fleet.parquet")  # what `write_fleet_summary` writes in its directory
+
+
 def write_fleet_summary(rows: Sequence[tuple[Any, ...]], directory: Path) -> list[Path]:
     """``fleet.csv`` (and ``fleet.parquet`` when pyarrow is installed) in `directory` from `fleet_row`'s rows; the
     paths written."""
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / "fleet.csv"
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+    with replacing(path, "w", newline="", encoding="utf-8") as fh:  # a FIFO or a planted symlink: refused, not hung
         writer = csv.writer(fh)
         writer.writerow(FLEET_COLUMNS)
         writer.writerows(rows)
-    os.replace(tmp, path)
     written = [path]
     try:
         import pyarrow as pa
@@ -269,6 +269,7 @@ def write_fleet_summary(rows: Sequence[tuple[Any, ...]], directory: Path) -> lis
     table = pa.table(
         {c: pa.array(v, type=pa.string() if c in ("log", "status", "error") else None) for c, v in columns.items()}
     )
-    pq.write_table(table, directory / "fleet.parquet")
+    with replacing(directory / "fleet.parquet") as fh:
+        pq.write_table(table, fh)
     written.append(directory / "fleet.parquet")
     return written

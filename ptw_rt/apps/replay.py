@@ -78,7 +78,7 @@ from ptw_rt.io.logformats import (
 from ptw_rt.parallel import worker_count
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.progress import Progress
-from ptw_rt.untrusted import file_kind, one_line, same_file
+from ptw_rt.untrusted import fifo_has_reader, file_kind, one_line, same_file
 
 __all__ = ["replay_job", "replay_log", "run_replay"]
 
@@ -123,6 +123,11 @@ class _Feed:
         # per burst, 23 000 for 7.7 MB), one count at the end (`report_bridged`), as the readers do for bad lines
         self._segments_unlisted = 0
         self._segments_listed = 0
+
+    @staticmethod
+    def input_lengths_of(tracker: InputTracker) -> dict[int, int]:
+        """The 11-bit inputs' ids and their DLCs."""
+        return {lay.frame_id: lay.length for lay in tracker.layouts if not lay.message.is_extended_frame}
 
     @staticmethod
     def input_ids_of(tracker: InputTracker) -> np.ndarray:
@@ -191,6 +196,19 @@ class _Feed:
         )
 
 
+# a bus's name the candump output can carry: an interface's (IFNAMSIZ 16), printable ASCII without space or '#'
+_OUTPUT_CHANNEL_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.:@")
+
+
+def _output_channel(bus: str | None) -> str:
+    """The channel the output log is written on: the input's bus (a candump log's), else DEFAULT_CHANNEL; a name
+    candump's ASCII lines cannot carry (non-ASCII, punctuation) is DEFAULT_CHANNEL too (it was a traceback at the
+    first line written)."""
+    if bus and len(bus) <= 16 and set(bus) <= _OUTPUT_CHANNEL_CHARS:
+        return bus
+    return DEFAULT_CHANNEL
+
+
 class ReplayOutputError(OutputError):
     """An output of the replay cannot be written (disk full, permission, not a file)."""
 
@@ -204,7 +222,7 @@ def _prepare_output(path: Path, what: str) -> None:
     try:
         if path.is_dir():
             raise ReplayOutputError(f"{what} {path} is a directory")
-        if path.is_fifo() and not _has_reader(path):  # opening it would wait for one: replay hung, nothing said
+        if path.is_fifo() and not fifo_has_reader(path):  # opening it would wait for one: replay hung, nothing said
             raise ReplayOutputError(f"{what} {path} is a FIFO (named pipe) with no reader; write to a file")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -212,17 +230,6 @@ def _prepare_output(path: Path, what: str) -> None:
             raise ReplayOutputError(f"cannot write {path}: a parent of it is not a directory") from None
     except OSError as exc:
         raise _output_error(path, exc) from None
-
-
-def _has_reader(fifo: Path) -> bool:
-    """A pipe someone reads (``--out /dev/stdout | cantools decode ...``) opens at once; one nobody reads would
-    block the open (ENXIO without blocking)."""
-    try:
-        fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
-    except OSError:
-        return False
-    os.close(fd)
-    return True
 
 
 def _is_stdout(path: Path | None) -> bool:
@@ -302,7 +309,7 @@ def replay_log(
     runner = runner or build_runner(config, design_file)
     frames_before = _input_frames(runner.tracker.summary())  # a runner given by the caller may have replayed others
     try:
-        bus = BusChoice(_Feed.input_ids_of(runner.tracker).tolist(), channel)
+        bus = BusChoice(_Feed.input_lengths_of(runner.tracker), channel)
         blocks, stats = open_log_arrays(in_path, bus=bus)
         # reported below, one line each, with what the replay did (bridged, or a new segment)
         stats.reader.warn_discontinuities = False
@@ -317,7 +324,7 @@ def replay_log(
                 f"{', '.join(stats.reader.other_channels)})"
             )
         raise EmptyLogError(stats.no_frames_message())
-    out_channel = (stats.reader.bus_read if stats.format == "candump" else None) or DEFAULT_CHANNEL
+    out_channel = _output_channel(stats.reader.bus_read if stats.format == "candump" else None)
     tick = None if progress is None else (lambda: progress.update(stats.fraction))
     feed = _Feed(first, blocks, runner.tracker, str(in_path), max_gap, tick)
     drive = DriveStats()
@@ -623,6 +630,14 @@ def _plan(args) -> list[tuple[Path, Path, Path | None]]:
         jobs = [
             (f, args.out / rel, None if args.csv is None else args.csv / rel.with_suffix(".csv")) for f, rel in files
         ]
+        # the fleet summary's own names in --out: an input called fleet.csv had its output overwritten by the summary
+        summary = {args.out / name for name in fleet.SUMMARY_NAMES}
+        clash = sorted({str(target) for _, out, csv in jobs for target in (out, csv) if target in summary})
+        if clash:
+            raise UserFacingError(
+                f"the output {clash[0]} would be overwritten by the fleet summary: rename that input log, or replay "
+                "it alone"
+            )
     for src, out, csv in jobs:
         writer_format(out)  # an unknown extension: one line now
         for target in (out, csv):
@@ -650,6 +665,7 @@ _SHORT_KEYS = (
     "late_frames",
     "discontinuities",
     "skipped_frames",
+    "bus",
     "other_bus_frames",
     "x_real_time",
     "modes",
@@ -795,7 +811,7 @@ def run_replay(args, *, out: IO[str] | None = None, err: IO[str] | None = None) 
         try:
             written = fleet.write_fleet_summary([rows[i] for i in range(len(jobs))], args.out)
         except OSError as exc:
-            raise _output_error(args.out / "fleet.csv", exc) from None
+            raise _output_error(exc.filename or args.out / "fleet.csv", exc) from None
         err.write(
             f"fleet: {len(jobs) - failures} of {len(jobs)} logs replayed, {riding_s / 3600.0:.2f} h of riding, "
             f"summary {', '.join(str(p) for p in written)}\n"

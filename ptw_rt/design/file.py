@@ -18,7 +18,7 @@ import numpy as np
 
 from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_DESIGN, own_design_file
-from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, same_file, short_text
+from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, replacing, same_file, short_text
 
 FORMAT_VERSION = 10
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
@@ -112,14 +112,8 @@ class DesignData:
         check_replaceable(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
-        tmp = path.with_name(path.name + ".tmp")
-        try:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-            tmp.replace(path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        with replacing(path) as fh:
+            np.savez_compressed(fh, **arrays)
 
 
 # Bounds of what a design file may hold, checked from the zip directory and each member's .npy header BEFORE

@@ -25,6 +25,7 @@ from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table, u
 from ptw_rt.edge.cycle import drive_log, shared_runner
 from ptw_rt.errors import UserFacingError
 from ptw_rt.output import emit
+from ptw_rt.parallel import map_in_processes
 from ptw_rt.paths import DEFAULT_CONFIG
 from ptw_rt.sim.recording import encode_frames
 from ptw_rt.sim.ride import Ride, get_scenario, parse_perturbations, simulate
@@ -466,14 +467,9 @@ def _markdown(nominal: list[dict], robustness: list[tuple[str, list[dict]]]) -> 
     return "\n".join(out)
 
 
-def _run_all(jobs: list[tuple]) -> list[dict]:
-    if len(jobs) == 1:
-        return [_one(jobs[0])]
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        return list(pool.map(_one, jobs))
+def _run_all(jobs: list[tuple], workers: int | None = None) -> list[dict]:
+    """The rides of ``jobs`` on ``--jobs`` processes (default: every usable core), in job order."""
+    return map_in_processes(_one, jobs, workers, None, lambda job: job[0])
 
 
 def run_evaluate(args) -> int:
@@ -494,6 +490,18 @@ def run_evaluate(args) -> int:
             "--restored-biases does not go with --matrix: issue #12's matrix starts from no persisted state"
         )
     if getattr(args, "matrix", False):
+        # the matrix is every scenario on its own variants: a scenario, --all or --perturb asked for something else,
+        # and the matrix ran in their place, exit 0 (found by fuzzing)
+        given = [
+            option
+            for option, value in (("--scenario", args.scenario), ("--all", args.all), ("--perturb", args.perturb))
+            if value
+        ]
+        if given:
+            raise UserFacingError(
+                f"{', '.join(given)} does not go with --matrix (every scenario on the matrix's own variants); "
+                "one ride or every scenario: --scenario NAME or --all, with --perturb"
+            )
         from ptw_rt.eval.matrix import run_matrix_command
 
         return run_matrix_command(args)
@@ -507,14 +515,15 @@ def run_evaluate(args) -> int:
     if getattr(args, "markdown", False):
         if not args.all:
             raise UserFacingError("--markdown needs --all")
-        results = _run_all(jobs)
+        workers = getattr(args, "jobs", None)
+        results = _run_all(jobs, workers)
         robustness = [
-            (title, _run_all([(n, args.seed, pert, args.config, args.design_file, restored) for n in names]))
+            (title, _run_all([(n, args.seed, pert, args.config, args.design_file, restored) for n in names], workers))
             for title, pert in ROBUSTNESS
         ]
         print(_markdown(results, robustness))
         return 0
-    results = _run_all(jobs)
+    results = _run_all(jobs, getattr(args, "jobs", None))
     if args.all:
         emit({"scenarios": results}, args.json, _table(results))
     else:

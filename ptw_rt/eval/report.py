@@ -15,6 +15,7 @@ import numpy as np
 from ptw_rt.core import layout as L  # noqa: N812 - the Estimates index table
 from ptw_rt.errors import UserFacingError, output_error
 from ptw_rt.eval.evaluate import SETTLE_S, Evaluation, evaluate_scenario
+from ptw_rt.untrusted import check_output_file, one_line
 
 DPI = 120
 FIGURES = ("roll", "rider_torque", "steer", "states", "forces", "stiffness", "mode")
@@ -112,6 +113,7 @@ def _finish(fig, axes, t, settle, path: Path) -> Path:
             ax.legend(loc="best", fontsize=8)
     axes[-1].set_xlabel("time [s]")
     fig.tight_layout()
+    check_output_file(path)
     fig.savefig(path, dpi=DPI)
     return path
 
@@ -287,6 +289,7 @@ def _write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
     save(fig, axes, "mode")
 
     summary = out_dir / "summary.md"
+    check_output_file(summary)
     summary.write_text(_summary(evaluation, files), encoding="utf-8")
     return [*files, summary]
 
@@ -294,5 +297,5 @@ def _write_report(evaluation: Evaluation, out_dir: Path) -> list[Path]:
 def run_report(args) -> int:
     evaluation = evaluate_scenario(args.scenario, args.seed, args.perturb, args.config, args.design_file)
     for path in write_report(evaluation, args.out):
-        print(path)
+        print(one_line(str(path)))
     return 0

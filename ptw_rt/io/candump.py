@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, NamedTuple
@@ -480,23 +480,59 @@ def _plain_columns(lines: list[str]) -> tuple[FrameArrays, tuple[str, ...]] | No
 
 
 class BusChoice:
-    """Which bus (channel) of a log of several is read: the one named, or the one the first frame with an
-    id of ``input_ids`` is on (the inputs'; the daemon reads one bus). A frame that is not an input, before the
-    choice is made, is read whatever its bus: it changes nothing the estimator sees."""
+    """Which bus (channel) of a log of several is read: the one named, or the inputs' (the daemon reads one bus):
+    the channel with the most input frames among the first ``VOTES`` of them, an input frame being a classic data
+    frame with an input's 11-bit identifier and length (``inputs``: id -> DLC). One stray frame ahead of the ride (a
+    29-bit, remote or short one, or one frame of another bus) decided it when the first input id did, and the whole
+    ride was skipped as another bus. The reader holds the frames while the choice is pending: at most ``HOLD``, then
+    the choice is made on what was seen (none: every frame is read, as in a log of one bus)."""
 
-    def __init__(self, input_ids: Iterable[int] = (), name: str | None = None) -> None:
-        self.input_ids = frozenset(int(i) for i in input_ids)
-        self.input_ids_array = np.array(sorted(self.input_ids), dtype=np.int64)
+    VOTES = 64
+    HOLD = 1 << 16
+
+    def __init__(self, inputs: Mapping[int, int] | None = None, name: str | None = None) -> None:
+        self.inputs = {int(i): int(n) for i, n in (inputs or {}).items()}
+        ids = sorted(self.inputs)
+        self.input_ids_array = np.array(ids, dtype=np.int64)
+        self.input_lengths_array = np.array([self.inputs[i] for i in ids], dtype=np.int64)
         self.name = name
         self.chosen = name
+        self.decided = name is not None
+        self._votes: dict[str, int] = {}  # channel -> its input frames seen, in the order channels were first seen
 
-    def keeps(self, channel: str, frame_id: int) -> bool:
-        """Whether a frame on ``channel`` with ``frame_id`` is read (the first input's channel becomes the bus)."""
-        if self.chosen is None:
-            if frame_id not in self.input_ids:
-                return True
-            self.chosen = channel
-        return channel == self.chosen
+    def vote(self, frame: LogFrame) -> None:
+        if not (frame.is_extended or frame.is_remote) and self.inputs.get(frame.frame_id) == len(frame.data):
+            self._votes[frame.channel] = self._votes.get(frame.channel, 0) + 1
+
+    def vote_columns(self, frames: FrameArrays, channels: tuple[str, ...]) -> None:
+        """``vote`` over a block of columns (data frames: none is remote)."""
+        if not self.input_ids_array.size or not len(frames):
+            return
+        k = np.clip(np.searchsorted(self.input_ids_array, frames.ids), 0, self.input_ids_array.size - 1)
+        hit = (self.input_ids_array[k] == frames.ids) & (self.input_lengths_array[k] == frames.lengths)
+        hit &= ~frames.extended
+        rows = np.flatnonzero(hit)
+        if not rows.size:
+            return
+        if channels.count(channels[0]) == len(channels):
+            self._votes[channels[0]] = self._votes.get(channels[0], 0) + int(rows.size)
+            return
+        for r in rows.tolist():
+            self._votes[channels[r]] = self._votes.get(channels[r], 0) + 1
+
+    def ready(self) -> bool:
+        return sum(self._votes.values()) >= self.VOTES
+
+    def decide(self) -> None:
+        """The channel with the most votes (the first seen of equals); none: every channel is read."""
+        if not self.decided:
+            self.decided = True
+            if self._votes:
+                self.chosen = max(self._votes, key=self._votes.__getitem__)
+
+    def keeps(self, channel: str) -> bool:
+        """Whether a frame on ``channel`` is read, once decided."""
+        return self.chosen is None or channel == self.chosen
 
 
 class TimeRule(Iterator[LogFrame]):
@@ -579,17 +615,33 @@ class TimeRule(Iterator[LogFrame]):
             if channel != self.first_channel:
                 self._other_channel(channel)
             return True
-        if bus.keeps(channel, frame_id):
+        if bus.keeps(channel):
             return True
         self._other_channel(channel)
         return False
 
-    def _bus_only(self, items: Iterator[LogFrame | Problem]) -> Iterator[LogFrame | Problem]:
-        """``items`` less the frames on other buses (``_on_bus``)."""
+    def _bus_only(self, items: Iterable[LogFrame | Problem]) -> Iterator[LogFrame | Problem]:
+        """``items`` less the frames on other buses (``_on_bus``); while the bus is not chosen (``BusChoice``), the
+        records are held and counted as votes, at most ``BusChoice.HOLD``, and the end of ``items`` decides."""
         on_bus = self._on_bus
+        bus = self.bus
+        held: list[LogFrame | Problem] = []
         for item in items:
+            if bus is not None and not bus.decided:
+                held.append(item)
+                if item.__class__ is not Problem:
+                    bus.vote(item)  # type: ignore[arg-type]
+                if not (bus.ready() or len(held) >= bus.HOLD):
+                    continue
+                bus.decide()
+                yield from self._bus_only(held)
+                held = []
+                continue
             if item.__class__ is Problem or on_bus(item.channel, item.frame_id):  # type: ignore[union-attr]
                 yield item
+        if held:
+            bus.decide()  # type: ignore[union-attr]
+            yield from self._bus_only(held)
 
     def _bus_rows(self, frames: FrameArrays, channels: tuple[str, ...]) -> np.ndarray | None:
         """The rows of a block of columns on the bus read (``_on_bus`` per frame, whole columns when the block is
@@ -602,11 +654,7 @@ class TimeRule(Iterator[LogFrame]):
             if self.first_channel is None:
                 self.first_channel = first
             bus = self.bus
-            if bus is not None and bus.chosen is None:
-                hits = np.flatnonzero(np.isin(frames.ids, bus.input_ids_array))
-                if hits.size:
-                    bus.keeps(first, int(frames.ids[hits[0]]))
-            if bus is None or bus.chosen is None or bus.chosen == first:
+            if bus is None or bus.keeps(first):
                 if bus is None and first != self.first_channel:
                     self._other_channel(first, n)
                 return None
@@ -919,24 +967,43 @@ class CandumpReader(TimeRule):
         whole columns (numpy); any other goes record by record."""
         try:
             line_no = 0
+            bus = self.bus
+            held: list[tuple] = []  # blocks read while the bus is not chosen (``BusChoice``), in order
+            held_frames = 0
             for block in self._blocks():
                 first = line_no
                 line_no += len(block)
                 plain = _plain_columns(block)
                 if plain is not None:
-                    frames, channels = plain
-                    rows = self._bus_rows(frames, channels)
-                    if rows is None:
-                        line_nos = np.arange(first + 1, line_no + 1)
-                    else:
-                        frames = FrameArrays(*(a[rows] for a in frames[:5]), frames.channel, [])
-                        channels = tuple(channels[r] for r in rows.tolist())
-                        line_nos = first + 1 + rows
-                    out = self._rule_columns(frames, channels, line_nos)
+                    part: tuple = (first, line_no, *plain)
                 else:
-                    out = FrameArrays.of(*self._rule_records(self._bus_only(self._block_items(block, first))))
-                if len(out):
-                    yield out
+                    part = (first, line_no, list(self._block_items(block, first)))
+                if bus is not None and not bus.decided:
+                    held.append(part)
+                    if plain is not None:
+                        bus.vote_columns(*plain)
+                        held_frames += len(plain[0])
+                    else:
+                        for item in part[2]:
+                            if item.__class__ is not Problem:
+                                bus.vote(item)
+                        held_frames += len(part[2])
+                    if not (bus.ready() or held_frames >= bus.HOLD):
+                        continue
+                    bus.decide()
+                else:
+                    held.append(part)
+                for part in held:
+                    out = self._read_part(part)
+                    if len(out):
+                        yield out
+                held = []
+            if held:
+                bus.decide()  # type: ignore[union-attr]
+                for part in held:
+                    out = self._read_part(part)
+                    if len(out):
+                        yield out
             tail = []
             for frame in self._end():
                 if frame.is_remote:
@@ -947,6 +1014,21 @@ class CandumpReader(TimeRule):
                 yield FrameArrays.of(tail, [])
         finally:
             self._release()
+
+    def _read_part(self, part: tuple) -> FrameArrays:
+        """One block of ``arrays``: its plain lines as columns (``first``, ``end``, frames, channels), or its
+        records (``first``, ``end``, records), through the bus and the time rule."""
+        if len(part) == 3:
+            return FrameArrays.of(*self._rule_records(self._bus_only(part[2])))
+        first, end, frames, channels = part
+        rows = self._bus_rows(frames, channels)
+        if rows is None:
+            line_nos = np.arange(first + 1, end + 1)
+        else:
+            frames = FrameArrays(*(a[rows] for a in frames[:5]), frames.channel, [])
+            channels = tuple(channels[r] for r in rows.tolist())
+            line_nos = first + 1 + rows
+        return self._rule_columns(frames, channels, line_nos)
 
     def _rule_columns(self, frames: FrameArrays, channels: tuple[str, ...], line_nos: np.ndarray) -> FrameArrays:
         """The time rule on a block of parsed lines: while a time base is accepted and no candidate pending, its

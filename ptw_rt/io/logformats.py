@@ -508,6 +508,9 @@ class _AscReader(_TextReader):
             )
             return None
         if not ASC_MESSAGE_REGEX.match(line):
+            fields = line.split(None, 2)
+            if len(fields) == 3 and _ASC_EVENT.match(line) and _ASC_FRAME_REST.match(fields[2]):
+                raise ValueError(f"channel {excerpt(fields[1])} is not a number")  # a frame, dropped unsaid before
             if _ASC_EVENT.match(line) or _is_asc_header(line):
                 return None  # comments, statistics, events: not frames
             # garbage (or a frame whose stamp is nan, inf, 1e308, -1): was skipped uncounted, half a log lost unsaid
@@ -517,7 +520,9 @@ class _AscReader(_TextReader):
         if channel == "CANFD":
             kwargs["is_fd"] = True
             return reader._process_fd_can_frame(rest, kwargs)
-        if not channel.isdigit():
+        if not (channel.isascii() and channel.isdigit()):
+            if _ASC_FRAME_REST.match(rest):  # a frame's fields after a channel that is no number: not an event line
+                raise ValueError(f"channel {excerpt(channel)} is not a number")
             return None
         kwargs["channel"] = int(channel) - 1
         msg = reader._process_classic_can_frame(rest, kwargs)
@@ -539,6 +544,9 @@ def _check_data(msg: Any, tokens: list[str], base: int) -> None:
 
 
 _ASC_EVENT = re.compile(r"\d+\.\d+\s")  # a time-stamped line: a frame, or an event (statistics, status, errors)
+# what follows a classic frame's channel: identifier (x: 29-bit), direction, d(ata) or r(emote). Such a line whose
+# channel is no number (abc, -1, 0x2, ä) was dropped uncounted; an event line (ErrorFrame, Statistic:) is not one
+_ASC_FRAME_REST = re.compile(r"[0-9A-Fa-f]{1,8}x?\s+(Rx|Tx)\s+[dr]\b")
 
 
 def _is_asc_header(line: str) -> bool:

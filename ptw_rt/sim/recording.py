@@ -27,6 +27,7 @@ from ptw_rt.io.dbc import FrameCodec
 from ptw_rt.paths import DEFAULT_DBC
 from ptw_rt.sim.ride import TRUTH_COLUMNS, TRUTH_UNITS, Ride
 from ptw_rt.sim.sensors import SensorFrame
+from ptw_rt.untrusted import check_output_file
 
 DEFAULT_CHANNEL = "vcan0"
 
@@ -132,6 +133,8 @@ def write_ride(
     }
     try:
         out.mkdir(parents=True, exist_ok=True)
+        for path in paths.values():  # a FIFO nobody reads there: the open waited for ever
+            check_output_file(path)
         write_log(ride, paths["log"], codec=codec, channel=channel, progress=progress)
         write_truth_csv(ride, paths["truth"])
         meta = ride_metadata(ride)

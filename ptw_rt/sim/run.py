@@ -13,6 +13,7 @@ from ptw_rt.schema import ConfigError
 from ptw_rt.sim.ride import NoRiderError, Ride, get_scenario, parse_perturbations, simulate
 from ptw_rt.sim.routes import MAX_ROUTE, ROUTE_DURATION, ROUTE_PREFIX
 from ptw_rt.sim.scenarios import SCENARIOS
+from ptw_rt.untrusted import one_line
 
 
 def list_scenarios() -> str:
@@ -130,7 +131,7 @@ def run_simulate(args) -> int:
     if changed:
         print("perturbation: " + ", ".join(f"{k}={v:g}" for k, v in changed.items()))
     for kind, p in paths.items():
-        print(f"wrote {p}" + (f" ({ride.n_frames()} frames)" if kind == "log" else ""))
+        print(f"wrote {one_line(str(p))}" + (f" ({ride.n_frames()} frames)" if kind == "log" else ""))
     print(
         f"real-time factor {ride.duration / sim_wall:.0f}x simulating, {ride.duration / total_wall:.0f}x including "
         f"the log ({total_wall:.2f} s wall)"
