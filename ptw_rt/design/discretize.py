@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import scipy.linalg as sla
+
+from ptw_rt.design.stability import spectral_radius
+
+__all__ = ["interpolate", "ramp_response", "spectral_radius", "zoh"]
 
 
 def zoh(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -38,15 +40,6 @@ def ramp_response(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
     block[:n, n : n + m] = B2 * dt
     block[n : n + m, n + m :] = np.eye(m) * dt
     return sla.expm(block)[:n, n + m :].reshape(B.shape)
-
-
-def spectral_radius(M: np.ndarray) -> float:
-    """Largest |eigenvalue|; infinite for a matrix that is not finite (a design that overflowed is not stable)."""
-    if not M.size:
-        return 0.0
-    if not np.all(np.isfinite(M)):
-        return math.inf
-    return float(np.max(np.abs(np.linalg.eigvals(M))))
 
 
 def interpolate(grid: np.ndarray, table: np.ndarray, u: float) -> np.ndarray:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ptw_rt.design.stability import spectral_radius
 from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_DESIGN, own_design_file
 from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, replacing, same_file, short_text
@@ -394,13 +395,7 @@ def error_dynamics_radii(design: DesignData) -> dict[str, float]:
     (diagnostics and on the sensors: pre-observer and zero dynamics), the adaptive observer, the fusion filter
     and every tyre hypothesis's evidence and publishing filters (e = Phi (I - K C) e). numpy alone, batched."""
     C = design.kf_C
-
-    def rho(M: np.ndarray) -> float:
-        if not M.size:
-            return 0.0
-        if not np.all(np.isfinite(M)):
-            return math.inf
-        return float(np.max(np.abs(np.linalg.eigvals(M))))
+    rho = spectral_radius
 
     def fusion(Phi: np.ndarray, K: np.ndarray) -> np.ndarray:
         return Phi @ (np.eye(Phi.shape[-1]) - K @ C)
