@@ -359,7 +359,16 @@ def test_run_monitor_bad_interface_is_user_facing():
     from ptw_rt.errors import UserFacingError
 
     with pytest.raises(UserFacingError):
-        run_monitor(argparse.Namespace(interface="no-such-interface", channel="x", duration=0.1, json=True))
+        run_monitor(argparse.Namespace(interface="no-such-interface", channel="x", duration=1.0, json=True))
+
+
+def test_a_watch_too_short_to_judge_is_refused_not_ok():
+    """`--duration 1e-300` said "ok" having watched nothing (found by fuzzing): shorter than a silent estimator
+    takes to be called silent (3 of the slowest output's periods), the watch is refused in one line."""
+    from ptw_rt.errors import UserFacingError
+
+    with pytest.raises(UserFacingError, match="at least 0.3 s"):
+        run_monitor(_args("monitor-test-short", 1e-300))
 
 
 def test_run_monitor_tty_refreshes_in_place():

@@ -36,6 +36,7 @@ __all__ = ["FROZEN_AFTER_S", "SILENT_AFTER_PERIODS", "MessageStats", "Monitor", 
 
 FROZEN_AFTER_S = 1.0
 SILENT_AFTER_PERIODS = 3.0
+MIN_WATCH_PERIODS = 3.0  # the shortest --duration, in the slowest output's periods: what a silence takes to be said
 RATE_WINDOW_S = 1.0
 _RAD2DEG = 180.0 / math.pi
 
@@ -358,6 +359,10 @@ def run_monitor(args, *, out: TextIO | None = None) -> int:
         codec = FrameCodec()
     except DbcError as exc:
         raise UserFacingError(str(exc)) from exc
+    # shorter than a silent estimator takes to be called silent, the verdict "ok" would be of nothing watched
+    needed = MIN_WATCH_PERIODS * max((codec.cycle_time_s(m) for m in codec.output_messages), default=0.1)
+    if duration is not None and duration < needed:
+        raise UserFacingError(f"--duration must be at least {needed:g} s (a silent estimator is said after that)")
     tty = not as_json and out.isatty()
     period = codec.cycle_time_s("EST_Status") if "EST_Status" in codec.output_messages else 0.1
     bus = _open_bus(args.interface, args.channel, codec.can_filters(codec.output_messages))

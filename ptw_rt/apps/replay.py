@@ -400,15 +400,6 @@ def replay_log(
             raise UserFacingError(f"cannot read CAN log {in_path}: {exc.strerror or exc}") from None
         duration += max(0.0, t_last - t_first)
         feed.report_bridged()
-        if stats.reader.other_channel_frames:
-            log.warning(
-                "%s: %d frames on other channels (%s) than the bus read, %s (%s): skipped; --channel reads another",
-                in_path,
-                stats.reader.other_channel_frames,
-                ", ".join(stats.reader.other_channels),
-                bus.chosen,
-                "--channel" if channel is not None else "its first input frame's",
-            )
         for close, path in ((writer.close, out_log), (None if csv is None else csv.close, csv_path)):
             if close is not None:
                 try:
@@ -453,6 +444,21 @@ def replay_log(
                 if feed.extended_inputs
                 else ""
             )
+            + (
+                f" ({stats.reader.other_channel_frames} frames on other channels skipped: "
+                f"{', '.join(stats.reader.other_channels)}; --channel reads another)"
+                if stats.reader.other_channel_frames
+                else ""
+            )
+        )
+    if stats.reader.other_channel_frames:  # said here, not before a refusal above (one line, not two)
+        log.warning(
+            "%s: %d frames on other channels (%s) than the bus read, %s (%s): skipped; --channel reads another",
+            in_path,
+            stats.reader.other_channel_frames,
+            ", ".join(stats.reader.other_channels),
+            bus.chosen,
+            "--channel" if channel is not None else "the inputs' bus",
         )
     if feed.extended_inputs:
         log.warning(

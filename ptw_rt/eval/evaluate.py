@@ -226,7 +226,10 @@ def evaluate_ride(
             _round(deg(_rms(E[m, L.E_ROLL_UIO_SENSORS] - truth["roll"][m]))) if m.any() else None
         ),
         "stiffness_err_pct": {},
-        "valid_share": _round(float(np.mean(E[t >= SETTLE_S, L.E_MODE] == L.MODE_VALID)), 3),
+        # None for a ride shorter than the settling time (`demo --duration 2`: numpy's "Mean of empty slice")
+        "valid_share": _round(float(np.mean(E[t >= SETTLE_S, L.E_MODE] == L.MODE_VALID)), 3)
+        if (t >= SETTLE_S).any()
+        else None,
     }
     if torque_peak:
         metrics["torque_rmse_pct_of_peak"] = _round(100.0 * metrics["torque_rmse_nm"] / torque_peak, 1)

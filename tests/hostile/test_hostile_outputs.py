@@ -140,3 +140,28 @@ def test_options_a_command_would_ignore_are_refused(tmp_path):
     out = proc.stdout
     assert "\x1b" not in out and not any(line.startswith("error: b") for line in out.splitlines()), out
     assert np.all([line.isprintable() for line in out.splitlines()])
+
+
+def test_a_channel_of_other_frames_alone_is_one_line(ride_log, tmp_path):
+    """`--channel` naming a bus that carries none of the inputs: the other-bus warning, then the refusal, two lines
+    where one is promised; the refusal now says what was skipped."""
+    path = tmp_path / "two.log"
+    stamp = ride_log.read_text().split(")")[0] + ")"
+    path.write_text(ride_log.read_text() + f"{stamp} can7 7F0#01\n")
+    proc = run_cli(["replay", path, "--out", tmp_path / "x.log", "--channel", "can7", "--no-progress"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "frames on other channels skipped: vcan0" in lines[0], proc.stderr
+
+
+def test_a_ride_shorter_than_the_settling_time_is_scored_without_numpy_warnings():
+    """`demo --duration 2` printed numpy's "Mean of empty slice": the share of time VALID over no scored frame."""
+    import warnings
+
+    from ptw_rt.eval.evaluate import evaluate_ride
+    from ptw_rt.sim.ride import simulate
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        ev = evaluate_ride(simulate("dlc_50", duration=2.0))
+    assert ev.result["metrics"]["valid_share"] is None
