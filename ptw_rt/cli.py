@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="NAME",
         help="in a log of several buses, the one to read, as the log names it (candump: can0; ASC, BLF: 0, 1 ...); "
-        "default: the bus of the first input frame. Frames on the others are skipped and counted",
+        "default: the bus with the most input frames among the first. Frames on the others are skipped and counted",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines on stderr")
     p.set_defaults(handler=_replay)

@@ -132,9 +132,7 @@ class _Feed:
     @staticmethod
     def input_ids_of(tracker: InputTracker) -> np.ndarray:
         """The 11-bit ids of the inputs the tracker decodes, sorted."""
-        return np.array(
-            sorted(lay.frame_id for lay in tracker.layouts if not lay.message.is_extended_frame), dtype=np.int64
-        )
+        return np.array(sorted(_Feed.input_lengths_of(tracker)), dtype=np.int64)
 
     def __iter__(self) -> Iterator[Block]:
         offset = 0
@@ -296,8 +294,8 @@ def replay_log(
     Returns a summary: cycles, segments, frames in/out, rejected records by reason, reordered frames, time
     discontinuities, log and wall duration, x real time, modes seen, input health counters. A gap in the log's
     time stamps longer than ``max_gap`` seconds, or a jump back, ends a segment (``drive_log``), whatever the
-    format. A log of several buses is read on one, as the daemon reads one: ``channel``, or the one its first
-    input frame is on; the frames on the others are skipped and counted (one warning line). Raises
+    format. A log of several buses is read on one, as the daemon reads one: ``channel``, or the inputs' bus
+    (``BusChoice``); the frames on the others are skipped and counted (one warning line). Raises
     UserFacingError if the input cannot be opened, is not a CAN log or holds no frame
     (``EmptyLogError``), ReplayOutputError (exit code ``EXIT_OUTPUT``) if an output cannot be written;
     ``progress`` (if given) is updated with the share of the log read.

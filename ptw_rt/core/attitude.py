@@ -356,7 +356,6 @@ PARAMS = Layout(
     r_pitch_rate=1,  # rad/s, pitch rate of the chassis taken as noise
     r_course=1,  # rad, GPS course noise at speed
     course_min_speed=1,  # m/s, below: course not used
-    latency_cycles=1,  # GPS latency in cycles
     latency=1,  # s, GPS latency (the course's instant to the millisecond: `_course_epoch`)
     gate=1,  # innovation gate [standard deviations]
     r_standstill_rate=1,  # rad/s, gyro noise at standstill (zero-rate update)
@@ -393,7 +392,6 @@ PARAMS = Layout(
     A_R_PITCH_RATE,
     A_R_COURSE,
     A_COURSE_MIN_SPEED,
-    A_LATENCY_CYCLES,
     A_LATENCY,
     A_GATE,
     A_R_STANDSTILL_RATE,
@@ -509,7 +507,6 @@ def attitude_params(
     prm[A_R_PITCH_RATE] = tuning.pitch_rate_noise
     prm[A_R_COURSE] = math.radians(tuning.course_noise_deg)
     prm[A_COURSE_MIN_SPEED] = tuning.course_min_speed
-    prm[A_LATENCY_CYCLES] = min(MAX_LATENCY_CYCLES, max(0, round(gps_latency / dt)))
     prm[A_LATENCY] = gps_latency
     prm[A_GATE] = tuning.innovation_gate
     prm[A_R_STANDSTILL_RATE] = tuning.standstill_rate_noise

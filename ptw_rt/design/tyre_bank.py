@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ptw_rt.design import kalman
+from ptw_rt.design.stability import spectral_radius
 from ptw_rt.model.parameters import VehicleParameters
 from ptw_rt.settings import KalmanTuning, TyreBankTuning
 
@@ -75,14 +76,10 @@ def bank_spectral_radii(data, grid: np.ndarray, between: int) -> tuple[float, fl
         for h in range(len(data.tb_scale)):
             Phi, K = Phi_all[h * G : (h + 1) * G], K_all[h * G : (h + 1) * G]
             for i in range(G):
-                at_grid = max(at_grid, _rho(kalman.error_dynamics(Phi[i], K[i], C)))
+                at_grid = max(at_grid, spectral_radius(kalman.error_dynamics(Phi[i], K[i], C)))
             for i in range(G - 1):
                 for w in np.linspace(0.0, 1.0, between + 2)[1:-1]:
                     Pw = (1 - w) * Phi[i] + w * Phi[i + 1]
                     Kw = (1 - w) * K[i] + w * K[i + 1]
-                    inside = max(inside, _rho(kalman.error_dynamics(Pw, Kw, C)))
+                    inside = max(inside, spectral_radius(kalman.error_dynamics(Pw, Kw, C)))
     return at_grid, inside
-
-
-def _rho(M: np.ndarray) -> float:
-    return float(np.max(np.abs(np.linalg.eigvals(M))))

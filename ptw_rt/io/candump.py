@@ -606,7 +606,7 @@ class TimeRule(Iterator[LogFrame]):
         if channel not in self.other_channels and len(self.other_channels) < 4:
             self.other_channels.append(channel)
 
-    def _on_bus(self, channel: str, frame_id: int) -> bool:
+    def _on_bus(self, channel: str) -> bool:
         """Whether a frame is read (``bus``), counting it when it is on another channel."""
         if self.first_channel is None:
             self.first_channel = channel
@@ -637,7 +637,7 @@ class TimeRule(Iterator[LogFrame]):
                 yield from self._bus_only(held)
                 held = []
                 continue
-            if item.__class__ is Problem or on_bus(item.channel, item.frame_id):  # type: ignore[union-attr]
+            if item.__class__ is Problem or on_bus(item.channel):  # type: ignore[union-attr]
                 yield item
         if held:
             bus.decide()  # type: ignore[union-attr]
@@ -660,7 +660,7 @@ class TimeRule(Iterator[LogFrame]):
                 return None
             self._other_channel(first, n)
             return np.empty(0, dtype=np.int64)
-        keep = [self._on_bus(c, i) for c, i in zip(channels, frames.ids.tolist(), strict=True)]
+        keep = [self._on_bus(c) for c in channels]
         return None if all(keep) else np.flatnonzero(keep)
 
     def _release(self) -> None:
@@ -978,8 +978,8 @@ class CandumpReader(TimeRule):
                     part: tuple = (first, line_no, *plain)
                 else:
                     part = (first, line_no, list(self._block_items(block, first)))
+                held.append(part)
                 if bus is not None and not bus.decided:
-                    held.append(part)
                     if plain is not None:
                         bus.vote_columns(*plain)
                         held_frames += len(plain[0])
@@ -991,19 +991,11 @@ class CandumpReader(TimeRule):
                     if not (bus.ready() or held_frames >= bus.HOLD):
                         continue
                     bus.decide()
-                else:
-                    held.append(part)
-                for part in held:
-                    out = self._read_part(part)
-                    if len(out):
-                        yield out
+                yield from self._read_parts(held)
                 held = []
             if held:
                 bus.decide()  # type: ignore[union-attr]
-                for part in held:
-                    out = self._read_part(part)
-                    if len(out):
-                        yield out
+                yield from self._read_parts(held)
             tail = []
             for frame in self._end():
                 if frame.is_remote:
@@ -1014,6 +1006,13 @@ class CandumpReader(TimeRule):
                 yield FrameArrays.of(tail, [])
         finally:
             self._release()
+
+    def _read_parts(self, parts: list[tuple]) -> Iterator[FrameArrays]:
+        """``_read_part`` over held blocks, in order, the non-empty ones."""
+        for part in parts:
+            out = self._read_part(part)
+            if len(out):
+                yield out
 
     def _read_part(self, part: tuple) -> FrameArrays:
         """One block of ``arrays``: its plain lines as columns (``first``, ``end``, frames, channels), or its

@@ -130,16 +130,10 @@ def setup_logging(level: str = "INFO", json_lines: bool = False, *, stream: IO[s
     name = str(level).upper()
     if name not in LEVELS:
         raise UserFacingError(f"log level must be one of {', '.join(LEVELS)}, got {level!r}")
-    root = logging.getLogger()
-    for h in list(root.handlers):
-        if getattr(h, _HANDLER_MARK, False):
-            root.removeHandler(h)
-            h.close()
     handler = logging.StreamHandler(stream if stream is not None else sys.stderr)
     handler.setFormatter(JsonLineFormatter() if json_lines else KeyValueFormatter())
-    setattr(handler, _HANDLER_MARK, True)
-    root.addHandler(handler)
-    root.setLevel(getattr(logging, name))
+    _install(handler)
+    logging.getLogger().setLevel(getattr(logging, name))
     logging.captureWarnings(True)
     return handler
 
@@ -168,14 +162,19 @@ class MessageLineFormatter(logging.Formatter):
 def setup_command_logging() -> None:
     """For the commands other than the daemon (which calls `setup_logging`, replacing this): warnings and errors on
     stderr, one line each (`MessageLineFormatter`)."""
+    handler = _StderrNow()
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(MessageLineFormatter())
+    _install(handler)
+
+
+def _install(handler: logging.Handler) -> None:
+    """``handler`` on the root logger, in place of the one ours installed before (marked ``_HANDLER_MARK``)."""
     root = logging.getLogger()
     for h in list(root.handlers):
         if getattr(h, _HANDLER_MARK, False):
             root.removeHandler(h)
             h.close()
-    handler = _StderrNow()
-    handler.setLevel(logging.WARNING)
-    handler.setFormatter(MessageLineFormatter())
     setattr(handler, _HANDLER_MARK, True)
     root.addHandler(handler)
 
