@@ -160,6 +160,16 @@ TYRE_BANK_SCHEMA = Section(
         "change_drift": (Number("", gt=0, le=100), 1.0),
         "change_memory": (Number("s", gt=0, le=60), 0.3),
         "valid_max_change": (Number("", gt=0, le=1e4), 4.0),
+        # the front/rear balance: two more filters beside the most likely one, its front tyre's stiffnesses times
+        # 1 / `balance_step` and `balance_step` (the rear's as they are); the one scale cannot say a front that differs
+        # from the rear (pressure, wear, another make), and a front x0.8 was VALID 22 % off. How much better each
+        # explains the learning cycles (with the bank's memory) is a parabola in the log of the front's factor: its
+        # peak is the balance learned (the front published times it), its curvature with a prior of
+        # `balance_prior_sd` (log) its spread. Neither axle is VALID unless that spread is within
+        # `valid_balance_log_sd` and the peak between the two filters (docs/estimator.md, "Tyres that differ by axle")
+        "balance_step": (Number("", gt=1.02, le=2), 1.15),
+        "balance_prior_sd": (Number("", gt=0, le=2), 0.1),
+        "valid_balance_log_sd": (Number("", gt=0, le=1), 0.04),
         "min_learning_speed": (Number("m/s", gt=0, le=100), 8.0),
         # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
         # kinematic steer the slip angles are measured against; learning waits while that could move k by more
@@ -472,6 +482,9 @@ class TyreBankTuning:
     change_drift: float
     change_memory: float
     valid_max_change: float
+    balance_step: float
+    balance_prior_sd: float
+    valid_balance_log_sd: float
     bias_window: float
     excitation_window: float
     min_excitation_lateral_accel: float

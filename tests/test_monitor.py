@@ -78,6 +78,7 @@ class Source:
                 "TireLearning": 1,
                 "TireChange": 0.5,
                 "PitchDoubted": 0,
+                "TireBalanceDoubted": 0,
             }
         return {
             "EST_TireStiffness_Valid": 1,

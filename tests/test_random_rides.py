@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from ptw_rt.eval import random_rides as rr
@@ -15,7 +16,7 @@ from ptw_rt.sim.ride import parse_perturbations
 def test_a_ride_is_the_same_ride_everywhere_and_every_draw_is_within_its_range():
     assert rr.draw_ride(9, 0) == rr.draw_ride(9, 0)
     assert rr.draw_ride(9, 0) != rr.draw_ride(10, 0)
-    ranges = {name: (low, high) for name, low, high in rr.DRAWS}
+    ranges = {name: (low, high) for name, low, high in rr.DRAWS + rr.AXLE_DRAWS}
     scenarios = set()
     for i in range(64):
         scenario, perturb, seed = rr.draw_ride(3, i)
@@ -107,14 +108,28 @@ def test_the_command_runs_rides_and_prints_json():
         assert ride["roll_rmse_deg"] is not None and ride["roll_tolerance_deg"] == 3.0
 
 
+def test_the_front_tyre_is_drawn_apart_so_every_other_draw_stays_what_it_was():
+    """The front tyre's own factor (AXLE_DRAWS, added 2026-12-07) comes from a stream of its own: a set's rides keep
+    the tyres, friction, payload, sensors, rider, seed and road they had before it was added."""
+    for i in range(16):
+        for hills in (False, True):
+            scenario, perturb, seed = rr.draw_ride(7, i, hills=hills)
+            rng = np.random.default_rng(1000 + i + 1000 * 7)
+            before = rr._drawn(rng, rr.DRAWS)
+            assert perturb[: len(rr.DRAWS)] == tuple(before) and seed == int(rng.integers(*rr.NOISE_SEEDS))
+            name, value = perturb[-1].split("=")
+            assert name == "front_stiffness" and 0.8 <= float(value) <= 1.25
+
+
 def test_hilly_rides_draw_the_same_rides_on_a_road_whose_grade_is_drawn_within_its_range():
     """`--hills` adds the road (HILL_DRAWS) after every other draw: the set's rides are the same rides on hills."""
     ranges = {name: (low, high) for name, low, high in rr.HILL_DRAWS}
     for i in range(16):
         for routes in (False, True):
             scenario, perturb, seed = rr.draw_ride(5, i, routes=routes, hills=True)
-            assert (scenario, perturb[: len(rr.DRAWS)], seed) == rr.draw_ride(5, i, routes=routes)
-            road = dict(item.split("=") for item in perturb[len(rr.DRAWS) :])
+            level = rr.draw_ride(5, i, routes=routes)
+            assert (scenario, perturb[: len(rr.DRAWS)], seed) == (level[0], level[1][: len(rr.DRAWS)], level[2])
+            road = dict(item.split("=") for item in perturb[len(rr.DRAWS) : len(rr.DRAWS) + len(rr.HILL_DRAWS)])
             assert set(road) == set(ranges)
             for name, value in road.items():
                 assert ranges[name][0] <= float(value) <= ranges[name][1]

@@ -34,10 +34,19 @@ def bank():
     return s, tuning, grid, tables
 
 
-def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0, k_after: float | None = None, at: float = 0.0):
-    """y per cycle from the linear model whose tyres are k_true x nominal (no nonlinear terms); `k_after`: the tyres
-    from `at` s on (a road that changes)."""
-    p = s.vehicle.scaled(stiffness=k_true)
+def _ride(
+    s,
+    k_true: float,
+    seconds: float,
+    excite: bool,
+    seed: int = 0,
+    k_after: float | None = None,
+    at: float = 0.0,
+    front: float = 1.0,
+):
+    """y per cycle from the linear model whose tyres are k_true x nominal (no nonlinear terms), its front tyre's times
+    `front` besides; `k_after`: the tyres from `at` s on (a road that changes)."""
+    p = s.vehicle.scaled(stiffness=k_true, front_stiffness=front)
     Phi, _, _ = dk.design_point(p, U, DT, s.estimator.kalman)
     Phi_after = (
         Phi if k_after is None else dk.design_point(s.vehicle.scaled(stiffness=k_after), U, DT, s.estimator.kalman)[0]
@@ -55,6 +64,11 @@ def _ride(s, k_true: float, seconds: float, excite: bool, seed: int = 0, k_after
         Y[k] = C @ x + noise * rng.standard_normal(ck.N_Y)
         x = (Phi if t < at or k_after is None else Phi_after) @ x
     return Y
+
+
+def _balance_tables(t) -> tuple:
+    """The balance check's tables, in `bank_step`'s order."""
+    return t["tb_bal_Phi"], t["tb_bal_K"], t["tb_bal_Gd"], t["tb_bal_Sinv"], t["tb_bal_logdet"]
 
 
 def _run(
@@ -78,19 +92,20 @@ def _run(
     H = len(t["tb_scale"])
     prm = tb.bank_params(H, DT, tuning)
     st = tb.new_state(H)
-    tb.set_prior(st, prm, t["tb_scale"], start, tuning.prior_sd)
+    tb.set_prior(st, prm, t["tb_scale"], start, tuning.prior_sd, 0.0)
     out = np.zeros(tb.OUT_SIZE)
     scratch = np.zeros(tb.SCRATCH_SIZE)
     C = dk.output_matrix(s.vehicle)
     no_correction = np.zeros(7)  # the plant is linear: no nonlinear correction
-    trace = np.zeros((len(Y), 4))
+    trace = np.zeros((len(Y), 7))
     states = np.zeros((len(Y), ck.N_Z))
     for k, y in enumerate(Y):
         tb.bank_step(
             st, out, scratch, prm, y, U, y[4], True, True, learn, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
-            t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"], gain_pub,
+            t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"], gain_pub, *_balance_tables(t),
         )  # fmt: skip
-        trace[k] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS], out[tb.OUT_CHANGE]
+        trace[k, :4] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS], out[tb.OUT_CHANGE]
+        trace[k, 4:] = out[tb.OUT_BALANCE], out[tb.OUT_BALANCE_LOG], out[tb.OUT_BALANCE_LOG_SD]
         states[k] = out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]
         if on_cycle is not None:
             on_cycle(k, st)
@@ -212,14 +227,14 @@ def test_a_nan_measurement_poisons_nothing_for_good(bank):
     H = len(t["tb_scale"])
     prm = tb.bank_params(H, DT, tuning)
     st = tb.new_state(H)
-    tb.set_prior(st, prm, t["tb_scale"], 1.0, tuning.prior_sd)
+    tb.set_prior(st, prm, t["tb_scale"], 1.0, tuning.prior_sd, 0.0)
     out = np.zeros(tb.OUT_SIZE)
     scratch = np.zeros(tb.SCRATCH_SIZE)
     C = dk.output_matrix(s.vehicle)
     for y in Y:
         tb.bank_step(
             st, out, scratch, prm, y, U, y[4], True, True, True, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
-            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"], t["tb_K_pub"],
+            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"], t["tb_K_pub"], *_balance_tables(t),
         )  # fmt: skip
         if not np.isfinite(out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]).all():
             tb.restart_filters(st, prm)  # what the lateral stage does
@@ -381,3 +396,61 @@ def test_the_publishing_filters_faster_torque_follows_a_busy_rider_better(tmp_pa
     torque = [ev.result["metrics"]["torque_rmse_nm"] for ev in runs]
     assert torque[0] < 0.97 * torque[1]
     assert runs[0].result["metrics"]["roll_rmse_deg"] == runs[1].result["metrics"]["roll_rmse_deg"]
+
+
+@pytest.mark.parametrize("k_true", [0.769, 1.0, 1.3])
+def test_the_balance_is_learned_as_the_files_when_both_axles_differ_alike(bank, k_true):
+    """Tyres that differ from the file's by one factor on both axles: the file's balance explains the learning best,
+    and the balance learned is 1 within a few percent, its spread narrow enough for VALID."""
+    s, tuning = bank[0], bank[1]
+    trace, _, _ = _run(bank, _ride(s, k_true, 40.0, excite=True, seed=7))
+    assert abs(trace[-1, 5]) < 0.03
+    assert trace[-1, 6] <= tuning.valid_balance_log_sd
+    assert trace[-1, 4] < 0.0  # both balance filters fit worse than the file's
+
+
+@pytest.mark.parametrize("front", [0.9, 1.1])
+def test_a_front_tyre_within_the_balance_filters_is_learned(bank, front):
+    """The front x0.9 (or x1.1) and the rear as the file says: the one scale follows the rear, and the balance
+    learned says the front, within 3 %, its spread narrow enough for VALID."""
+    s, tuning = bank[0], bank[1]
+    trace, _, _ = _run(bank, _ride(s, 1.0, 30.0, excite=True, seed=8, front=front))
+    assert trace[-1, 0] == pytest.approx(1.0, rel=0.05)
+    assert math.exp(trace[-1, 5]) == pytest.approx(front, rel=0.03)
+    assert trace[-1, 6] <= tuning.valid_balance_log_sd
+
+
+@pytest.mark.parametrize("front", [0.8, 1.25])
+def test_a_front_tyre_beyond_the_balance_filters_is_said(bank, front):
+    """The front x0.8 (or x1.25): beyond the balance filters (x1/1.15, x1.15), where the parabola would extrapolate;
+    within 10 s of excited riding the balance learned lies beyond them (the supervisor then withholds VALID)."""
+    s, tuning = bank[0], bank[1]
+    trace, _, _ = _run(bank, _ride(s, 1.0, 20.0, excite=True, seed=8, front=front))
+    beyond = np.flatnonzero(np.abs(trace[:, 5]) >= math.log(tuning.balance_step))
+    assert beyond.size and beyond[0] * DT < 10.0
+    assert np.sign(trace[-1, 5]) == np.sign(math.log(front))
+    assert abs(trace[-1, 5]) >= math.log(tuning.balance_step)
+
+
+def test_the_balance_takes_no_evidence_without_learning(bank):
+    """Not learning (a lean beyond the linear range, inputs not sound): no evidence either way, the prior's spread."""
+    s, tuning = bank[0], bank[1]
+    trace, _, _ = _run(bank, _ride(s, 1.0, 10.0, excite=True, seed=8, front=0.8), learn=False)
+    assert np.all(trace[:, 4] == 0.0)
+    assert np.all(trace[:, 5] == 0.0)
+    assert np.allclose(trace[:, 6], tuning.balance_prior_sd)
+
+
+def test_the_balance_posterior_is_the_parabolas_peak_and_curvature():
+    """Lambda at -step and +step of a log-likelihood -(x - x0)^2 / (2 sd^2) (relative to x = 0) give back x0 and sd
+    (with a flat prior); both balances better than the file's is no peak: infinite sd."""
+    step, x0, sd = 0.14, -0.05, 0.03
+
+    def lam(x):
+        return -((x - x0) ** 2) / (2 * sd * sd) + x0 * x0 / (2 * sd * sd)
+
+    x, s = tb.balance_posterior(lam(-step), lam(step), step, 1e6)
+    assert x == pytest.approx(x0, rel=1e-9)
+    assert s == pytest.approx(sd, rel=1e-9)
+    assert tb.balance_posterior(5.0, 5.0, step, 1e6)[1] == math.inf
+    assert tb.balance_posterior(0.0, 0.0, step, 0.1) == (0.0, pytest.approx(0.1))

@@ -150,6 +150,40 @@ def kalman_pair_step_at(
 
 
 @njit(cache=True, inline="always")
+def kalman_step_at(
+    st: np.ndarray,
+    s0: int,
+    out: np.ndarray,
+    y: np.ndarray,
+    u: float,
+    roll_init: float,
+    j: int,
+    w: float,
+    Phi: np.ndarray,
+    K: np.ndarray,
+    C: np.ndarray,
+    Gd: np.ndarray,
+    nl: np.ndarray,
+    d: np.ndarray,
+) -> None:
+    """One cycle of one filter whose state is at ``st[s0 : s0 + STATE_SIZE]``, between table rows j and j + 1: a
+    filter with tables of its own (the tyre bank's balance check), where `kalman_pair_step_at` steps two that share
+    them. The same start, settling and step."""
+    fresh = st[s0 + INIT] == 0.0
+    _start(st, s0, y, roll_init)
+    for _ in range(1 + (SETTLE_STEPS if fresh else 0)):
+        _correct(st, s0, out, y, j, w, K, C)
+        nonlinear_correction(d, out, u, nl)
+        for a in range(N_Z):
+            acc = 0.0
+            for b in range(N_Z):
+                acc += lerp(Phi, j, w, a, b) * out[b]
+            for b in range(N_D):
+                acc += lerp(Gd, j, w, a, b) * d[b]
+            st[s0 + a] = acc
+
+
+@njit(cache=True, inline="always")
 def _start(st: np.ndarray, s0: int, y: np.ndarray, roll_init: float) -> None:
     """A filter that is not initialised starts from the measured steer, yaw and roll rates and `roll_init`."""
     if st[s0 + INIT] == 0.0:

@@ -41,6 +41,19 @@ windowed mean normalised innovation
 (NIS) of the most likely filter: small spread says the data single out one tyre; a NIS near its
 expected value says that tyre explains the data. Both together make the valid bit (the supervisor's).
 
+**The balance check.** The one scale cannot say a front tyre that differs from the rear by more than the file's
+balance (pressure, wear, another make): with the front x0.8 it follows the rear and publishes the front 22 % off.
+Two more evidence filters run beside the most likely hypothesis (at `SC_BAL_H`), its front tyre's stiffnesses
+times 1 / `balance_step` and `balance_step` (design: ptw_rt.design.tyre_bank). Over the learning cycles, with the
+bank's memory, each accumulates by how much it explains the data better than the window's filter at that hypothesis:
+
+    Lambda_s = forget Lambda_s + (ll_s - ll_centre)        (s = 0, 1; only while learning)
+
+Healthy, the file's balance explains the data best and both stay negative; the largest is OUT_BALANCE (nats),
+beyond `valid_max_balance` neither axle's stiffness is VALID (the supervisor's). The filters move with the
+estimate (when it is `BALANCE_MOVE_STEPS` of a step from theirs), starting from the window's filter there and
+taking no evidence for `join_settle_time`, as a hypothesis joining the window does; what they learned stays.
+
 Learning is allowed by the caller only from sound inputs, above the validity speed and below a lean
 angle beyond which the plant's tyres leave their linear range (the small-slip stiffness is what we
 estimate; a saturated tyre would look softer).
@@ -72,18 +85,20 @@ B_MAX_EVIDENCE_NIS = 11  # no evidence while even the best-fitting filter's shor
 B_CHANGE_DRIFT = 12  # nats per cycle a neighbour of the most likely tyre must beat it by to count as a change ...
 B_CHANGE_LEAK = 13  # ... in the change statistic, which fades by this factor per cycle (`_change_statistic`)
 B_JOIN_SETTLE = 14  # cycles a hypothesis that joined the window borrows its neighbour's evidence (`_enter_window`)
-PARAM_SIZE = 15
+B_BALANCE_LOG_STEP = 15  # log of the balance filters' factor on the front tyre (module doc)
+B_BALANCE_PRIOR_SD = 16  # sd of the log of the front's factor a priori
+PARAM_SIZE = 17
 
 # ---- state layout: H blocks of (z, init), then per-hypothesis vectors (log-likelihood, NIS, prior, fast NIS,
 # operating log-likelihood, unclipped log-likelihood, cycles left settling, the neighbour it joined from), then
-# scalars, then H blocks of the publishing filters ----
+# scalars, then H blocks of the publishing filters, then the balance check's two filters (module doc) ----
 BLOCK = kf.STATE_SIZE  # one fusion filter's state
 N_VECTORS = 8  # per-hypothesis vectors between the filters' blocks and the scalars
 
 
 @njit(cache=True)
 def state_size(count: int) -> int:
-    return count * BLOCK + N_VECTORS * count + N_SCALARS + count * BLOCK
+    return count * BLOCK + N_VECTORS * count + N_SCALARS + count * BLOCK + N_BALANCE * BLOCK
 
 
 @njit(cache=True)
@@ -139,6 +154,12 @@ def _published0(count: int) -> int:
     return count * BLOCK + N_VECTORS * count + N_SCALARS
 
 
+@njit(cache=True)
+def _balance0(count: int) -> int:
+    """The balance check's side s filter is the block at this + s BLOCK (module doc)."""
+    return _published0(count) + count * BLOCK
+
+
 SC_CENTRE = 0  # log k of the prior's centre
 SC_INIT = 1  # 1 once the prior is set
 SC_MS_AY = 2  # windowed mean square of a_y
@@ -146,7 +167,16 @@ SC_MS_R = 3  # windowed mean square of the yaw rate
 SC_LOW = 4  # first hypothesis of the running window
 SC_MAP = 5  # the small-slip posterior's most likely hypothesis of the last cycle (the window's centre)
 SC_CHANGE = 6  # the change statistic (`_change_statistic`)
-N_SCALARS = 7
+SC_BAL_H = 7  # the hypothesis the balance check's filters run at (-1: not started)
+SC_BAL_SETTLE = 8  # cycles left in which they take no evidence (they started from another filter's state)
+SC_BALANCE = 9  # Lambda of side 0 (front x 1 / balance_step), then of side 1 (x balance_step): module doc
+SC_BAL_PRIOR = 11  # log of the front's factor a priori (0: the file's balance; a state file's learned one)
+N_SCALARS = 12
+N_BALANCE = 2  # the balance check's filters: front x 1 / balance_step, x balance_step
+# the balance check's filters move to the most likely hypothesis once the estimate is this many steps of the grid
+# from theirs: comparing the balances at a scale a step off would bias them (a stiffer front makes up for tyres too
+# soft overall), while following every flicker of the most likely hypothesis between two would keep them settling
+BALANCE_MOVE_STEPS = 0.75
 
 # ---- outputs ----
 OUT_Z = 0  # operating posterior's mixture of the publishing filters' corrected states (kf.N_Z)
@@ -161,7 +191,10 @@ OUT_OPERATING_SCALE = OUT_SCALE + 7  # the operating posterior's scale (what the
 OUT_EVIDENCE_ROLL = OUT_SCALE + 8  # the same mixture of the evidence filters' roll and torque (a blown-up filter
 OUT_EVIDENCE_TORQUE = OUT_SCALE + 9  # among them shows here, though its states are not published)
 OUT_CHANGE = OUT_SCALE + 10  # nats: how much better a neighbouring tyre explains the last cycles (a road that changed)
-OUT_SIZE = OUT_SCALE + 11
+OUT_BALANCE = OUT_SCALE + 11  # nats: how much better the better balance filter explains the learning (module doc)
+OUT_BALANCE_LOG = OUT_SCALE + 12  # log of the front tyre's factor against the rear's learned (module doc)
+OUT_BALANCE_LOG_SD = OUT_SCALE + 13  # its sd
+OUT_SIZE = OUT_SCALE + 14
 
 MAX_COUNT = 32  # hypotheses the scratch is laid out for (the design file has `len(tb_scale)`)
 # scratch needed by `bank_step`: innovation (N_Y), the evidence and the publishing filters' outputs (N_Z) and
@@ -198,6 +231,8 @@ def bank_params(count: int, dt: float, tuning) -> np.ndarray:
     prm[B_CHANGE_DRIFT] = tuning.change_drift
     prm[B_CHANGE_LEAK] = math.exp(-dt / tuning.change_memory)
     prm[B_JOIN_SETTLE] = round(tuning.join_settle_time / dt)
+    prm[B_BALANCE_LOG_STEP] = math.log(tuning.balance_step)
+    prm[B_BALANCE_PRIOR_SD] = tuning.balance_prior_sd
     return prm
 
 
@@ -206,8 +241,11 @@ def new_state(count: int) -> np.ndarray:
 
 
 @njit(cache=True)
-def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float, sd: float) -> None:
-    """Start from tyres `centre` x nominal, with sd of log k `sd` (forgets all evidence)."""
+def set_prior(
+    st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float, sd: float, balance_log: float = 0.0
+) -> None:
+    """Start from tyres `centre` x nominal, with sd of log k `sd`, and the front's factor against the rear's
+    exp(`balance_log`) (forgets all evidence)."""
     H = int(prm[B_COUNT])
     lc = math.log(centre)
     for h in range(H):
@@ -221,6 +259,11 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float,
         st[_settle0(H) + h] = 0.0
     st[_scalars0(H) + SC_CENTRE] = lc
     st[_scalars0(H) + SC_INIT] = 1.0
+    st[_scalars0(H) + SC_BAL_H] = -1.0  # the balance check starts afresh beside the new most likely hypothesis
+    st[_scalars0(H) + SC_BAL_SETTLE] = 0.0
+    for side in range(N_BALANCE):
+        st[_scalars0(H) + SC_BALANCE + side] = 0.0
+    st[_scalars0(H) + SC_BAL_PRIOR] = balance_log
     best = 0
     for h in range(1, H):
         if abs(math.log(scale[h]) - lc) < abs(math.log(scale[best]) - lc):
@@ -273,6 +316,8 @@ def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
     for h in range(H):
         st[h * BLOCK + kf.INIT] = 0.0
         st[_published0(H) + h * BLOCK + kf.INIT] = 0.0
+    for side in range(N_BALANCE):
+        st[_balance0(H) + side * BLOCK + kf.INIT] = 0.0
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -404,8 +449,14 @@ def bank_step(
     Sinv: np.ndarray,
     logdet: np.ndarray,
     K_pub: np.ndarray,
+    bal_Phi: np.ndarray,
+    bal_K: np.ndarray,
+    bal_Gd: np.ndarray,
+    bal_Sinv: np.ndarray,
+    bal_logdet: np.ndarray,
 ) -> None:
-    """One cycle: each filter's innovation, evidence, the two posteriors, then every running filter's step, mixed.
+    """One cycle: each filter's innovation, evidence, the two posteriors, then every running filter's step, mixed;
+    the balance check's filters beside them (module doc).
 
     observe: this cycle's measurements are sound (the innovations are checked for consistency);
     track: and they may move the operating tyres the published states are mixed from (at any lean: a tyre
@@ -414,7 +465,7 @@ def bank_step(
     H = int(prm[B_COUNT])
     G = grid.shape[0]
     if st[_scalars0(H) + SC_INIT] == 0.0:
-        set_prior(st, prm, scale, 1.0, prm[B_PRIOR_SD])
+        set_prior(st, prm, scale, 1.0, prm[B_PRIOR_SD], 0.0)
     i, w = grid_position(grid, u)
     e = scratch[SC_E : SC_E + kf.N_Y]
     zh = scratch[SC_ZH : SC_ZH + kf.N_Z]
@@ -498,6 +549,7 @@ def bank_step(
     for h in range(lo, hi + 1):
         if st[_settle0(H) + h] > 0.0:
             st[_settle0(H) + h] -= 1.0
+    _balance_evidence(st, out, prm, y, i, w, C, bal_Sinv, bal_logdet, nis_now, ld_now, lo, hi, learn, forget, e)
 
     # 2. the posteriors over the window: the small-slip one (published stiffness, its spread and consistency)
     # and the operating one (the weights of the published states)
@@ -541,3 +593,126 @@ def bank_step(
     out[OUT_LEARNING] = 1.0 if learn else 0.0
     out[OUT_OPERATING_SCALE] = math.exp(mean_log_op)
     st[sc + SC_MAP] = map_h
+    _balance_step(st, prm, y, u, roll_init, i, w, G, bal_Phi, bal_K, C, bal_Gd, nl, zh, d, map_h, mean_log, scale)
+
+
+@njit(cache=True)
+def _balance_evidence(
+    st: np.ndarray,
+    out: np.ndarray,
+    prm: np.ndarray,
+    y: np.ndarray,
+    i: int,
+    w: float,
+    C: np.ndarray,
+    Sinv: np.ndarray,
+    logdet: np.ndarray,
+    nis_now: np.ndarray,
+    ld_now: np.ndarray,
+    lo: int,
+    hi: int,
+    learn: bool,
+    forget: float,
+    e: np.ndarray,
+) -> None:
+    """This cycle of the balance (module doc): each side's Lambda forgets like the bank's evidence and, while
+    learning, adds by how much that side's filter explains this cycle better than the window's filter at the same
+    hypothesis (only if both measured it, neither is settling, and both innovations are finite); then the balance
+    and its spread from them (`balance_posterior`) into `out`."""
+    H = int(prm[B_COUNT])
+    G = Sinv.shape[0] // (N_BALANCE * H)
+    sc = _scalars0(H)
+    hb = int(st[sc + SC_BAL_H])
+    take = (
+        learn
+        and lo <= hb <= hi
+        and st[sc + SC_BAL_SETTLE] <= 0.0
+        and not math.isnan(nis_now[hb])
+        and not st[_settle0(H) + hb] > 0.0
+    )
+    largest = -math.inf
+    for side in range(N_BALANCE):
+        gain = 0.0
+        z0 = _balance0(H) + side * BLOCK
+        if take and st[z0 + kf.INIT] != 0.0:
+            j = (side * H + hb) * G + i
+            for r in range(kf.N_Y):
+                acc = y[r]
+                for c in range(kf.N_Z):
+                    acc -= C[r, c] * st[z0 + c]
+                e[r] = acc
+            nis = 0.0
+            for r in range(kf.N_Y):
+                for c in range(kf.N_Y):
+                    nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
+            ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
+            if math.isfinite(nis):
+                gain = 0.5 * (nis_now[hb] + ld_now[hb] - nis - ld)
+        value = forget * st[sc + SC_BALANCE + side] + gain
+        st[sc + SC_BALANCE + side] = value
+        largest = max(largest, value)
+    if st[sc + SC_BAL_SETTLE] > 0.0:
+        st[sc + SC_BAL_SETTLE] -= 1.0
+    out[OUT_BALANCE] = largest
+    out[OUT_BALANCE_LOG], out[OUT_BALANCE_LOG_SD] = balance_posterior(
+        st[sc + SC_BALANCE],
+        st[sc + SC_BALANCE + 1],
+        prm[B_BALANCE_LOG_STEP],
+        prm[B_BALANCE_PRIOR_SD],
+        st[sc + SC_BAL_PRIOR],
+    )
+
+
+@njit(cache=True)
+def balance_posterior(
+    lower: float, upper: float, step: float, prior_sd: float, prior_mean: float = 0.0
+) -> tuple[float, float]:
+    """(log of the front's factor, its sd) from Lambda of the filters at -step and +step (`lower`, `upper`, nats
+    against the file's balance at 0) and a Gaussian prior of sd `prior_sd` around `prior_mean`: the log-likelihood
+    as a parabola through (-step, lower), (0, 0), (step, upper), plus the prior's. A curvature that is not a peak (both
+    balances better than the file's: no balance between them explains the data) is an infinite sd."""
+    precision = -(lower + upper) / (step * step) + 1.0 / (prior_sd * prior_sd)
+    if not precision > 0.0:  # also a NaN
+        return 0.0, math.inf
+    slope = (upper - lower) / (2.0 * step) + prior_mean / (prior_sd * prior_sd)
+    return slope / precision, 1.0 / math.sqrt(precision)
+
+
+@njit(cache=True)
+def _balance_step(
+    st: np.ndarray,
+    prm: np.ndarray,
+    y: np.ndarray,
+    u: float,
+    roll_init: float,
+    i: int,
+    w: float,
+    G: int,
+    Phi: np.ndarray,
+    K: np.ndarray,
+    C: np.ndarray,
+    Gd: np.ndarray,
+    nl: np.ndarray,
+    z: np.ndarray,
+    d: np.ndarray,
+    map_h: int,
+    mean_log: float,
+    scale: np.ndarray,
+) -> None:
+    """The balance check's filters' step at their hypothesis; then, if the estimate has moved `BALANCE_MOVE_STEPS`
+    of a step from it (or they have not started), they move to the most likely hypothesis: from the window's
+    evidence filter there (its state for the next cycle), taking no evidence while they settle."""
+    H = int(prm[B_COUNT])
+    sc = _scalars0(H)
+    hb = int(st[sc + SC_BAL_H])
+    if hb >= 0:
+        for side in range(N_BALANCE):
+            row = (side * H + hb) * G + i
+            kf.kalman_step_at(st, _balance0(H) + side * BLOCK, z, y, u, roll_init, row, w, Phi, K, C, Gd, nl, d)
+    step = math.log(scale[1] / scale[0])  # the hypotheses are log-spaced
+    if hb < 0 or (hb != map_h and not abs(mean_log - math.log(scale[hb])) <= BALANCE_MOVE_STEPS * step):
+        for side in range(N_BALANCE):
+            for k in range(BLOCK):
+                st[_balance0(H) + side * BLOCK + k] = st[map_h * BLOCK + k]
+        st[sc + SC_BAL_H] = map_h
+        st[sc + SC_BAL_SETTLE] = prm[B_JOIN_SETTLE]

@@ -254,8 +254,8 @@ def format_check(result: dict[str, Any]) -> str:
         f"UIHOSMO on the sensors: reconstruction outputs {'+'.join(us['outputs'])}, pre-observer "
         f"{'+'.join(us['observed'])}, unknown inputs {us['unknown_inputs']}; zero dynamics stable above "
         f"{us['detectability_floor_kmh']:.1f} km/h, valid above {us['min_valid_speed_kmh']:.1f} km/h",
-        f"tyre bank: {len(result['tyre_bank']['scales'])} hypotheses (an evidence and a publishing filter each) "
-        f"for tyres x "
+        f"tyre bank: {len(result['tyre_bank']['scales'])} hypotheses (an evidence and a publishing filter each, "
+        f"and two balance filters) for tyres x "
         f"{result['tyre_bank']['scales'][0]:g}..{result['tyre_bank']['scales'][-1]:g}: max rho "
         f"{result['tyre_bank']['max_spectral_radius']:.4f} at grid speeds, "
         f"{result['tyre_bank']['between_grid_max_spectral_radius']:.4f} between them",

@@ -21,7 +21,7 @@ from ptw_rt.errors import UserFacingError
 from ptw_rt.paths import DEFAULT_DESIGN, own_design_file
 from ptw_rt.untrusted import check_replaceable, excerpt, open_binary, replacing, same_file, short_text
 
-FORMAT_VERSION = 10
+FORMAT_VERSION = 11
 REGENERATE_HINT = "regenerate it with: ptw-rt design --config {config} --out {path}"
 
 
@@ -86,6 +86,13 @@ class DesignData:
     # the publishing filter's gain (tyre forces freer of the tyre model); its Phi and Gd are tb_Phi and tb_Gd,
     # which depend on the vehicle alone
     tb_K_pub: np.ndarray  # (H*G, 9, 5)
+    # the balance check's evidence filters: hypothesis h with its front tyre x 1 / balance_step (side 0) and
+    # x balance_step (side 1), rows (side H + h) G + i (design/tyre_bank.py)
+    tb_bal_Phi: np.ndarray  # (2*H*G, 9, 9)
+    tb_bal_K: np.ndarray  # (2*H*G, 9, 5)
+    tb_bal_Gd: np.ndarray  # (2*H*G, 9, 4)
+    tb_bal_Sinv: np.ndarray  # (2*H*G, 5, 5)
+    tb_bal_logdet: np.ndarray  # (2*H*G, 1, 1)
     # UIHOSMO on the real sensors (issue #16; design.uio_sensors, runtime core.uio_sensors), reduced state as uh_*
     us_outputs: np.ndarray  # (m,) int, core.uio_sensors M_* codes of the reconstruction outputs
     us_observed: np.ndarray  # (p,) int, M_* codes of the pre-observer's outputs (us_outputs first)
@@ -170,6 +177,11 @@ _SHAPES: dict[str, tuple] = {
     "tb_Sinv": ("HG", 5, 5),
     "tb_logdet": ("HG", 1, 1),
     "tb_K_pub": ("HG", 9, 5),
+    "tb_bal_Phi": ("2HG", 9, 9),
+    "tb_bal_K": ("2HG", 9, 5),
+    "tb_bal_Gd": ("2HG", 9, 4),
+    "tb_bal_Sinv": ("2HG", 5, 5),
+    "tb_bal_logdet": ("2HG", 1, 1),
     "us_outputs": ("m",),
     "us_observed": ("p",),
     "us_degrees": ("m",),
@@ -222,6 +234,7 @@ def _check_contents(raw: dict[str, np.ndarray], expected_sample_time: float | No
         return f"us_degrees outside 1-{MAX_DEGREE}"
     n2 = raw["us_Phi22"].shape[1] if raw["us_Phi22"].ndim == 3 else 0
     sizes = {"G": grid.shape[0], "H": scale.shape[0], "HG": scale.shape[0] * grid.shape[0], "m": m, "p": p}
+    sizes["2HG"] = 2 * sizes["HG"]
     sizes.update(P5=p + 5, n2=n2, n1=7 - n2)
     if not 1 <= n2 <= 6:
         return f"us_Phi22 splits the reduced state {7 - n2} + {n2}"
@@ -405,7 +418,11 @@ def error_dynamics_radii(design: DesignData) -> dict[str, float]:
         "uio_sensors": max(rho(design.us_Phi), rho(design.us_Phi22)),
         "adaptive": rho(design.ad_Phi),
         "fusion": rho(fusion(design.kf_Phi, design.kf_K)),
-        "tyre_bank": max(rho(fusion(design.tb_Phi, design.tb_K)), rho(fusion(design.tb_Phi, design.tb_K_pub))),
+        "tyre_bank": max(
+            rho(fusion(design.tb_Phi, design.tb_K)),
+            rho(fusion(design.tb_Phi, design.tb_K_pub)),
+            rho(fusion(design.tb_bal_Phi, design.tb_bal_K)),
+        ),
     }
 
 

@@ -3,10 +3,10 @@
 Every real scooter's tyres differ from the nominal file (pressure, temperature, wear, a wet road). We
 parametrise the difference by one factor k on all four small-slip stiffnesses (C_af, C_gf, C_ar, C_gr):
 it is what the data identify under ordinary riding (docs/estimator.md, "Tyres"), and what a changed road
-friction does. The bank holds the steady-state fusion filter (ptw_rt.design.kalman) designed for the
-vehicle with its tyres scaled by each k of a log-spaced grid, at every grid speed, plus each filter's
-innovation covariance S; the runtime (ptw_rt.core.tyre_bank) weighs the filters by the likelihood of
-their innovations.
+friction does; and the front's factor against the rear's from two more filters (the balance, below). The bank
+holds the steady-state fusion filter (ptw_rt.design.kalman) designed for the vehicle with its tyres scaled by
+each k of a log-spaced grid, at every grid speed, plus each filter's innovation covariance S; the runtime
+(ptw_rt.core.tyre_bank) weighs the filters by the likelihood of their innovations.
 
 Each hypothesis also has a publishing filter: the same vehicle and measurements, its tyre forces' process
 noise scaled by `fusion_filter.published_force_noise` (front, rear), so the published forces and torque
@@ -18,6 +18,11 @@ Tables (H hypotheses, G grid speeds; hypothesis-major, so rows h*G .. h*G+G-1 ar
   tb_scale (H,), tb_Phi (H*G, 9, 9), tb_K (H*G, 9, 5), tb_Gd (H*G, 9, 4), tb_Sinv (H*G, 5, 5),
   tb_logdet (H*G, 1, 1) (log det S, as a 3-D table so it interpolates like the others),
   tb_K_pub: the publishing filters' gain (their Phi and Gd are tb_Phi and tb_Gd: the same vehicle).
+
+The balance check's filters (`balances`): hypothesis h's vehicle with its front tyre's two stiffnesses times
+1 / `balance_step` (side 0) and `balance_step` (side 1), the rear's as they are; evidence filters only (no
+publishing twin). Rows (side H + h) G + i of tb_bal_Phi (2*H*G, 9, 9), tb_bal_K (2*H*G, 9, 5), tb_bal_Gd (2*H*G, 9, 4),
+tb_bal_Sinv (2*H*G, 5, 5), tb_bal_logdet (2*H*G, 1, 1). Their output matrix is the bank's (the tyres do not enter it).
 """
 
 from __future__ import annotations
@@ -28,6 +33,11 @@ from ptw_rt.design import kalman
 from ptw_rt.design.stability import spectral_radius
 from ptw_rt.model.parameters import VehicleParameters
 from ptw_rt.settings import KalmanTuning, TyreBankTuning
+
+
+def balances(tuning: TyreBankTuning) -> tuple[float, float]:
+    """The front tyre's factors of the balance check's two filters (module doc), side 0 and side 1."""
+    return 1.0 / tuning.balance_step, tuning.balance_step
 
 
 def design_bank(
@@ -62,6 +72,39 @@ def design_bank(
         "tb_Sinv": np.array(sinv),
         "tb_logdet": np.array(logdet).reshape(-1, 1, 1),
         "tb_K_pub": np.array(gain_pub),
+        **_balance_filters(p, ks, grid, dt, kalman_tuning, tuning),
+    }
+
+
+def _balance_filters(
+    p: VehicleParameters,
+    ks: np.ndarray,
+    grid: np.ndarray,
+    dt: float,
+    kalman_tuning: KalmanTuning,
+    tuning: TyreBankTuning,
+) -> dict[str, np.ndarray]:
+    """The balance check's evidence filters (module doc), side-major, then hypothesis, then grid speed."""
+    phi, gain, gd, sinv, logdet = [], [], [], [], []
+    C = kalman.output_matrix(p)
+    for front in balances(tuning):
+        for k in ks:
+            pk = p.scaled(stiffness=float(k), front_stiffness=front)
+            if not np.array_equal(kalman.output_matrix(pk), C):
+                raise ValueError("the balance check's filters measure through another output matrix than the bank's")
+            for u in grid:
+                Phi, K, Gd, S = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning)
+                phi.append(Phi)
+                gain.append(K)
+                gd.append(Gd)
+                sinv.append(np.linalg.inv(S))
+                logdet.append(np.linalg.slogdet(S)[1])
+    return {
+        "tb_bal_Phi": np.array(phi),
+        "tb_bal_K": np.array(gain),
+        "tb_bal_Gd": np.array(gd),
+        "tb_bal_Sinv": np.array(sinv),
+        "tb_bal_logdet": np.array(logdet).reshape(-1, 1, 1),
     }
 
 
@@ -72,8 +115,9 @@ def bank_spectral_radii(data, grid: np.ndarray, between: int) -> tuple[float, fl
     G = len(grid)
     C = data.kf_C
     at_grid, inside = 0.0, 0.0
-    for Phi_all, K_all in ((data.tb_Phi, data.tb_K), (data.tb_Phi, data.tb_K_pub)):
-        for h in range(len(data.tb_scale)):
+    pairs = ((data.tb_Phi, data.tb_K), (data.tb_Phi, data.tb_K_pub), (data.tb_bal_Phi, data.tb_bal_K))
+    for Phi_all, K_all in pairs:
+        for h in range(Phi_all.shape[0] // G):  # hypotheses (and the balance check's sides x hypotheses)
             Phi, K = Phi_all[h * G : (h + 1) * G], K_all[h * G : (h + 1) * G]
             for i in range(G):
                 at_grid = max(at_grid, spectral_radius(kalman.error_dynamics(Phi[i], K[i], C)))

@@ -33,6 +33,7 @@ from ptw_rt.core.layout import (
     E_STEER_RESIDUAL,
     E_TORQUE_RESIDUAL,
     E_TORQUE_UIO_SENSORS,
+    E_TYRE_BALANCE_DOUBTED,
     E_TYRE_CHANGE,
     E_TYRE_LEARNING,
     E_TYRE_LOG_SD,
@@ -87,6 +88,7 @@ SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
         ("TireLearning", E_TYRE_LEARNING, 0),
         ("TireChange", E_TYRE_CHANGE, 0),
         ("PitchDoubted", E_PITCH_DOUBTED, 0),
+        ("TireBalanceDoubted", E_TYRE_BALANCE_DOUBTED, 0),
     ),
     # the plausibility monitor (issue #16): diagnostics, valid while the estimator runs
     "EST_Plausibility": (

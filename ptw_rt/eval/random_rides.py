@@ -66,6 +66,9 @@ HILL_DRAWS = (
     ("road_slope_swing", 0.0, 6.0),  # deg
     ("road_slope_length", 200.0, 1000.0),  # m ridden over one swing
 )
+# and the front tyre against the rear (a pressure or a wear of its own): from a generator of its own (`_axle_rng`), so a
+# set's other draws are the ones it had before this draw was added (2026-12-07), and a route's ride is drawn the same
+AXLE_DRAWS = (("front_stiffness", 0.8, 1.25),)
 NOISE_SEEDS = (20, 10000)  # the rides' noise seeds are drawn from [20, 10000): not the scenarios' own
 MAX_RIDES = 100_000
 MAX_GENERATOR_SEED = 10**9  # sets: ride i of set G draws from a generator seeded 1000 + i + 1000 G
@@ -78,14 +81,20 @@ def draw_ride(
 ) -> tuple[str, tuple[str, ...], int]:
     """(scenario, perturbations, noise seed) of ride `index` of set `generator_seed`; with `routes`, the ride is a
     random route (``route_N``, ``ptw_rt.sim.routes``), and with `hills` its road's grade (HILL_DRAWS), each drawn
-    after the rest, so the other draws are the same as without."""
+    after the rest, so the other draws are the same as without; last, the front tyre's own factor (AXLE_DRAWS)."""
     rng = np.random.default_rng(1000 + index + 1000 * generator_seed)
     perturb = _drawn(rng, DRAWS)
     seed = int(rng.integers(*NOISE_SEEDS))
     scenario = f"{ROUTE_PREFIX}{int(rng.integers(0, MAX_ROUTE))}" if routes else SCENARIOS[index % len(SCENARIOS)]
     if hills:
         perturb += _drawn(rng, HILL_DRAWS)
+    perturb += _drawn(_axle_rng(generator_seed, index), AXLE_DRAWS)
     return scenario, tuple(perturb), seed
+
+
+def _axle_rng(generator_seed: int, index: int) -> np.random.Generator:
+    """Ride `index` of set `generator_seed`'s own stream for AXLE_DRAWS (beside the ride's generator, not after it)."""
+    return np.random.default_rng([1000 + index + 1000 * generator_seed, 1])
 
 
 def _drawn(rng: np.random.Generator, draws: tuple) -> list[str]:

@@ -182,8 +182,15 @@ class VehicleParameters:
         front_share = self.l_r / (self.l_f + self.l_r)
         return replace(self, m_r=self.m_r + dm, front_load=self.front_load + dm * self.g * front_share)
 
-    def scaled(self, mass_inertia: float = 1.0, stiffness: float = 1.0) -> VehicleParameters:
-        """A perturbed vehicle: masses and inertias (and load) times one factor, tyre stiffness times another."""
+    def scaled(
+        self,
+        mass_inertia: float = 1.0,
+        stiffness: float = 1.0,
+        front_stiffness: float = 1.0,
+        rear_stiffness: float = 1.0,
+    ) -> VehicleParameters:
+        """A perturbed vehicle: masses and inertias (and load) times one factor, tyre stiffness times another, and
+        each axle's two stiffnesses times its own factor besides (tyres that differ by axle)."""
         mi = mass_inertia
         return replace(
             self,
@@ -195,10 +202,10 @@ class VehicleParameters:
             i_rz=self.i_rz * mi,
             c_rxz=self.c_rxz * mi,
             front_load=self.front_load * mi,
-            c_af=self.c_af * stiffness,
-            c_gf=self.c_gf * stiffness,
-            c_ar=self.c_ar * stiffness,
-            c_gr=self.c_gr * stiffness,
+            c_af=self.c_af * stiffness * front_stiffness,
+            c_gf=self.c_gf * stiffness * front_stiffness,
+            c_ar=self.c_ar * stiffness * rear_stiffness,
+            c_gr=self.c_gr * stiffness * rear_stiffness,
         )
 
     def as_dict(self) -> dict[str, Any]:

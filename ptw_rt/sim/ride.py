@@ -11,7 +11,7 @@ import math
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -225,10 +225,7 @@ def parse_perturbations(items: list[str] | None) -> Perturbation:
 
 
 def perturbed_vehicle(p: VehicleParameters, pert: Perturbation) -> VehicleParameters:
-    q = p.scaled(mass_inertia=pert.mass_inertia, stiffness=pert.stiffness)
-    if pert.front_stiffness != 1.0 or pert.rear_stiffness != 1.0:
-        f, r = pert.front_stiffness, pert.rear_stiffness
-        q = replace(q, c_af=q.c_af * f, c_gf=q.c_gf * f, c_ar=q.c_ar * r, c_gr=q.c_gr * r)
+    q = p.scaled(pert.mass_inertia, pert.stiffness, pert.front_stiffness, pert.rear_stiffness)
     if pert.added_mass:
         try:
             q = q.with_added_mass(pert.added_mass)  # a point mass at the rear-frame CoM, as the file's `added_mass`
