@@ -160,13 +160,13 @@ TYRE_BANK_SCHEMA = Section(
         "change_drift": (Number("", gt=0, le=100), 1.0),
         "change_memory": (Number("s", gt=0, le=60), 0.3),
         "valid_max_change": (Number("", gt=0, le=1e4), 4.0),
-        # the front/rear balance: two more filters beside the most likely one, its front tyre's stiffnesses times
-        # 1 / `balance_step` and `balance_step` (the rear's as they are); the one scale cannot say a front that differs
-        # from the rear (pressure, wear, another make), and a front x0.8 was VALID 22 % off. How much better each
-        # explains the learning cycles (with the bank's memory) is a parabola in the log of the front's factor: its
-        # peak is the balance learned (the front published times it), its curvature with a prior of
-        # `balance_prior_sd` (log) its spread. Neither axle is VALID unless that spread is within
-        # `valid_balance_log_sd` and the peak between the two filters (docs/estimator.md, "Tyres that differ by axle")
+        # the front/rear balance check: two more filters beside the most likely one, its front tyre's stiffnesses
+        # times 1 / `balance_step` and `balance_step` (the rear's as they are); the one scale cannot say a front that
+        # differs from the rear (pressure, wear, another make), and a front x0.8 was VALID 23 % off. How much better
+        # each explains the learning cycles (with the bank's memory) is a parabola in the log of the front's factor:
+        # its peak is the balance the evidence points to, its curvature with a prior of `balance_prior_sd` (log) its
+        # spread. Once that spread is within `valid_balance_log_sd` and the peak half a step from the file's
+        # balance, neither axle is VALID (docs/estimator.md, "Tyres that differ by axle: the balance check")
         "balance_step": (Number("", gt=1.02, le=2), 1.15),
         "balance_prior_sd": (Number("", gt=0, le=2), 0.1),
         "valid_balance_log_sd": (Number("", gt=0, le=1), 0.04),

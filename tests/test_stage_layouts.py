@@ -148,9 +148,8 @@ def test_set_initial_stiffness_scale_starts_from_scaled_tyres_not_restored(setti
     est = E.Estimator(settings, design)
     nominal, bound = design.ad_theta_nominal, design.ad_theta_bound
     est.set_initial_stiffness_scale(0.8, 1.2)
-    # the tyre bank: its scale the rear's, its balance the front's over it, clipped to the balance filters'
-    # (x1/1.15); seed 001's observer: per axle, clipped to its bounds
-    np.testing.assert_allclose(est.learned_stiffness(), nominal * 1.2 * np.array([1 / 1.15, 1 / 1.15, 1.0, 1.0]))
+    # the tyre bank (one scale): the geometric mean; seed 001's observer: per axle, clipped to its bounds
+    np.testing.assert_allclose(est.learned_stiffness(), nominal * np.sqrt(0.8 * 1.2))
     expected = np.clip(nominal * np.array([0.8, 0.8, 1.2, 1.2]), nominal - bound, nominal + bound)
     np.testing.assert_allclose(stf.learned(est.states["stiffness"], design), expected)
     assert est.states["stiffness"][stf.ST_RESTORED] == 0.0

@@ -173,7 +173,7 @@ def publish(
     est[E_TYRE_NIS] = o_lat[lat.OUT_TYRE_NIS]
     est[E_TYRE_LEARNING] = o_lat[lat.OUT_TYRE_LEARNING]
     est[E_TYRE_CHANGE] = o_lat[lat.OUT_TYRE_CHANGE]
-    est[E_TYRE_BALANCE] = math.exp(o_lat[lat.OUT_TYRE_BALANCE_LOG])
+    est[E_TYRE_BALANCE] = math.exp(o_lat[lat.OUT_TYRE_BALANCE_LOG])  # a check: not applied to the front
     est[E_TYRE_BALANCE_DOUBTED] = o_sup[sup.OUT_TYRE_BALANCE_DOUBTED]
     est[E_PITCH_DOUBTED] = 1.0 if att.pitch_doubted(o_att) else 0.0  # the lateral stage's learning gate
     est[E_C_ALPHA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 0]  # seed 001's adaptive observer (diagnostic)
@@ -277,11 +277,6 @@ def packed_step(
     publish(est, o_in, o_spd, o_att, o_cnd, o_dia, o_lat, o_stf, o_sup)
 
 
-def _axle_ratios(ratios: np.ndarray) -> tuple[float, float]:
-    """(front, rear) from [C_af, C_gf, C_ar, C_gr] over the file's: each axle's two as their geometric mean."""
-    return float(math.sqrt(ratios[0] * ratios[1])), float(math.sqrt(ratios[2] * ratios[3]))
-
-
 class Estimator:
     """Owns the preallocated buffers of one estimator and the bound arguments of its jitted step.
 
@@ -327,12 +322,9 @@ class Estimator:
         return self._state, self._state_index, self._tables, self._table_index
 
     def learned_stiffness(self) -> np.ndarray:
-        """[C_af, C_gf, C_ar, C_gr] in N/rad: the tyre bank's scale times the nominal file's, the front's times the
-        balance learned too (what is published)."""
-        st, prm, out = self.states["lateral"], self.params["lateral"], self.outputs["lateral"]
-        k = lat.scale_estimate(st, prm, out)
-        b = lat.balance_estimate(st, prm, out)
-        return k * np.asarray(self.settings.vehicle.nominal_stiffness()) * np.array([b, b, 1.0, 1.0])
+        """[C_af, C_gf, C_ar, C_gr] in N/rad: the tyre bank's scale times the nominal file's."""
+        k = lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])
+        return k * np.asarray(self.settings.vehicle.nominal_stiffness())
 
     def learned_sensor_biases(self) -> tuple[float, float, float, float] | None:
         """(b_p, b_q, b_r [rad/s], b_ay [m/s^2]) the attitude filter has learned, or None while it has no sound
@@ -405,17 +397,12 @@ class Estimator:
     def learned_tyre_scale(self) -> float:
         return lat.scale_estimate(self.states["lateral"], self.params["lateral"], self.outputs["lateral"])
 
-    def _start_tyres(self, scale: float, restored: bool, balance: float = 1.0) -> None:
+    def _start_tyres(self, scale: float, restored: bool) -> None:
         lo, hi = float(self.design.tb_scale[0]), float(self.design.tb_scale[-1])
-        if not (math.isfinite(scale) and scale > 0.0 and math.isfinite(balance) and balance > 0.0):
-            raise ValueError(f"tyre scale and balance must be finite and > 0, got {scale}, {balance}")
+        if not (math.isfinite(scale) and scale > 0.0):
+            raise ValueError(f"tyre scale must be finite and > 0, got {scale}")
         lat.set_prior(
-            self.states["lateral"],
-            self.params["lateral"],
-            self.design.tb_scale,
-            min(max(scale, lo), hi),
-            restored,
-            balance,
+            self.states["lateral"], self.params["lateral"], self.design.tb_scale, min(max(scale, lo), hi), restored
         )
         self.outputs["lateral"][lat.OUT_TYRE_SCALE] = 0.0  # the prior's centre until the bank runs
 
@@ -425,13 +412,13 @@ class Estimator:
         values = np.asarray(values, dtype=float)
         if values.shape != (4,) or not np.all(np.isfinite(values)) or not np.all(values > 0.0):
             raise ValueError("expected four finite, positive stiffness values")
-        front, rear = _axle_ratios(values / np.asarray(self.settings.vehicle.nominal_stiffness()))
-        self._start_tyres(rear, restored=True, balance=front / rear)
+        ratios = values / np.asarray(self.settings.vehicle.nominal_stiffness())
+        self._start_tyres(float(np.exp(np.mean(np.log(ratios)))), restored=True)
         stf.restore(self.states["stiffness"], values, self.design)
 
     def set_initial_stiffness_scale(self, front: float, rear: float) -> None:
-        """Start from the nominal tyres times `front` (C_af, C_gf) and `rear` (C_ar, C_gr): the tyre bank's scale from
-        the rear, its balance from the front's over it, with the ordinary prior spreads; not marked restored or
-        learned (the evaluation's wrong-start check)."""
+        """Start from the nominal tyres times `front` (C_af, C_gf) and `rear` (C_ar, C_gr); the tyre bank learns
+        one scale for all four, so it starts from their geometric mean with its ordinary prior spread; not
+        marked restored or learned (the evaluation's wrong-start check)."""
         stf.start_from_scale(self.states["stiffness"], front, rear, self.design)
-        self._start_tyres(float(rear), restored=False, balance=float(front) / float(rear))
+        self._start_tyres(math.sqrt(float(front) * float(rear)), restored=False)

@@ -139,9 +139,9 @@ OUTPUTS = Layout(
     tyre_evidence=1,  # s of such cycles behind the estimate, faded with the bank's memories (what validity rests on)
     tyre_operating_scale=1,  # k the mixture runs on (evidence at any lean: near saturation, the secant slope)
     tyre_change=1,  # nats: the bank's change statistic (a neighbouring tyre explains the last cycles better)
-    tyre_balance_log=1,  # log of the front tyre's factor against the rear's (the bank's balance; module doc)
+    tyre_balance_log=1,  # log of the front tyre's factor against the rear's the bank's evidence points to (a check)
     tyre_balance_log_sd=1,  # its sd (inf: no balance between the bank's two balance filters explains the data)
-    tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], the front's x the balance: what is published
+    tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
     tyre_slope_ratio=1,  # the mean slope ratio of the cycles learned from (1: small slip; `_slope_ratio`)
     ran=1,  # 1: the filters ran this cycle (z is theirs): on every sensor, or coasting through a silent one
 )
@@ -389,15 +389,12 @@ def lateral_stage(
     out[OUT_TYRE_EVIDENCE] = _count_evidence(st, prm, bank_out[tb.OUT_LEARNING] != 0.0)
     out[OUT_TYRE_OPERATING_SCALE] = bank_out[tb.OUT_OPERATING_SCALE]
     out[OUT_TYRE_CHANGE] = bank_out[tb.OUT_CHANGE]
-    balance_log = bank_out[tb.OUT_BALANCE_LOG]
-    out[OUT_TYRE_BALANCE_LOG] = balance_log
+    # the balance is a check, not applied to the published front: an encoder zero a count off and a payload move it
+    # as much as a front tyre 10 % off (docs/estimator.md, "Tyres that differ by axle: the balance check")
+    out[OUT_TYRE_BALANCE_LOG] = bank_out[tb.OUT_BALANCE_LOG]
     out[OUT_TYRE_BALANCE_LOG_SD] = bank_out[tb.OUT_BALANCE_LOG_SD]
-    # the front published at the balance learned, within the bank's two balance filters (beyond them the parabola
-    # is an extrapolation, and nothing published is VALID: the supervisor)
-    step = prm[P_BANK + tb.B_BALANCE_LOG_STEP]
-    front = math.exp(min(max(balance_log, -step), step)) if math.isfinite(balance_log) else 1.0
     for k in range(4):
-        out[OUT_TYRE_STIFFNESS + k] = scale * prm[P_NOMINAL + k] * (front if k < 2 else 1.0)
+        out[OUT_TYRE_STIFFNESS + k] = scale * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
     out[OUT_RAN] = 1.0 if filtering else 0.0
@@ -518,26 +515,14 @@ def reset(st: np.ndarray, prm: np.ndarray) -> None:
     tb.restart_filters(_bank(st), _bank_params(prm))
 
 
-def set_prior(
-    st: np.ndarray, prm: np.ndarray, scales: np.ndarray, centre: float, restored: bool, balance: float = 1.0
-) -> None:
-    """Start the tyre estimate from `centre` x nominal (a persisted value, or a test's wrong start), the front's
-    factor against the rear's from `balance` (clamped to the bank's balance filters)."""
+def set_prior(st: np.ndarray, prm: np.ndarray, scales: np.ndarray, centre: float, restored: bool) -> None:
+    """Start the tyre estimate from `centre` x nominal (a persisted value, or a test's wrong start)."""
     sd = prm[P_RESTORED_SD] if restored else prm[P_PRIOR_SD]
-    step = prm[P_BANK + tb.B_BALANCE_LOG_STEP]
-    tb.set_prior(_bank(st), _bank_params(prm), scales, centre, sd, min(max(math.log(balance), -step), step))
+    tb.set_prior(_bank(st), _bank_params(prm), scales, centre, sd)
     st[ST_SLOPE_SUM] = 0.0  # a new start: no working point learned from yet
     st[ST_SLOPE_WEIGHT] = 0.0
     st[ST_SMALL_SLIP_SCALE] = 0.0
     st[ST_BANK_OUT + tb.OUT_SCALE] = 0.0  # the bank has not run on this prior: report its centre until it does
-
-
-def balance_estimate(st: np.ndarray, prm: np.ndarray, out: np.ndarray) -> float:
-    """The front tyre's factor against the rear's as published (the bank's balance; its prior's before it ran)."""
-    if out[OUT_TYRE_SCALE] > 0.0:
-        return float(out[OUT_TYRE_STIFFNESS] / (out[OUT_TYRE_STIFFNESS + 2] * prm[P_NOMINAL] / prm[P_NOMINAL + 2]))
-    H = int(prm[P_BANK + tb.B_COUNT])
-    return float(math.exp(_bank(st)[tb._scalars0(H) + tb.SC_BAL_PRIOR]))
 
 
 def scale_estimate(st: np.ndarray, prm: np.ndarray, out: np.ndarray) -> float:

@@ -41,18 +41,20 @@ windowed mean normalised innovation
 (NIS) of the most likely filter: small spread says the data single out one tyre; a NIS near its
 expected value says that tyre explains the data. Both together make the valid bit (the supervisor's).
 
-**The balance check.** The one scale cannot say a front tyre that differs from the rear by more than the file's
-balance (pressure, wear, another make): with the front x0.8 it follows the rear and publishes the front 22 % off.
-Two more evidence filters run beside the most likely hypothesis (at `SC_BAL_H`), its front tyre's stiffnesses
-times 1 / `balance_step` and `balance_step` (design: ptw_rt.design.tyre_bank). Over the learning cycles, with the
-bank's memory, each accumulates by how much it explains the data better than the window's filter at that hypothesis:
+**The balance check.** The one scale cannot say a front tyre that differs from the rear (pressure, wear, another
+make): with the front x0.8 it follows the rear and published the front 23 % off. Two more evidence filters run beside
+the most likely hypothesis (at `SC_BAL_H`), its front tyre's stiffnesses times 1 / `balance_step` and `balance_step`
+(design: ptw_rt.design.tyre_bank). Over the learning cycles, with the bank's memory, each accumulates by how much it
+explains the data better than the window's filter at that hypothesis:
 
     Lambda_s = forget Lambda_s + (ll_s - ll_centre)        (s = 0, 1; only while learning)
 
-Healthy, the file's balance explains the data best and both stay negative; the largest is OUT_BALANCE (nats),
-beyond `valid_max_balance` neither axle's stiffness is VALID (the supervisor's). The filters move with the
-estimate (when it is `BALANCE_MOVE_STEPS` of a step from theirs), starting from the window's filter there and
-taking no evidence for `join_settle_time`, as a hypothesis joining the window does; what they learned stays.
+A parabola through Lambda at -step, 0 and +step in the log of the front's factor, with a prior, gives the balance
+the evidence points to and its sd (`balance_posterior`: OUT_BALANCE_LOG, OUT_BALANCE_LOG_SD); the supervisor
+withholds VALID when it points away from the file's balance. A check only: an encoder zero a count off and a payload
+read as a balance too (docs/estimator.md, "Tyres that differ by axle: the balance check"). The filters move with the
+estimate (when it is `BALANCE_MOVE_STEPS` of a step from theirs), starting from the window's filter there and taking
+no evidence for `join_settle_time`, as a hypothesis joining the window does; what they learned stays.
 
 Learning is allowed by the caller only from sound inputs, above the validity speed and below a lean
 angle beyond which the plant's tyres leave their linear range (the small-slip stiffness is what we
@@ -170,8 +172,7 @@ SC_CHANGE = 6  # the change statistic (`_change_statistic`)
 SC_BAL_H = 7  # the hypothesis the balance check's filters run at (-1: not started)
 SC_BAL_SETTLE = 8  # cycles left in which they take no evidence (they started from another filter's state)
 SC_BALANCE = 9  # Lambda of side 0 (front x 1 / balance_step), then of side 1 (x balance_step): module doc
-SC_BAL_PRIOR = 11  # log of the front's factor a priori (0: the file's balance; a state file's learned one)
-N_SCALARS = 12
+N_SCALARS = SC_BALANCE + 2
 N_BALANCE = 2  # the balance check's filters: front x 1 / balance_step, x balance_step
 # the balance check's filters move to the most likely hypothesis once the estimate is this many steps of the grid
 # from theirs: comparing the balances at a scale a step off would bias them (a stiffer front makes up for tyres too
@@ -241,11 +242,8 @@ def new_state(count: int) -> np.ndarray:
 
 
 @njit(cache=True)
-def set_prior(
-    st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float, sd: float, balance_log: float = 0.0
-) -> None:
-    """Start from tyres `centre` x nominal, with sd of log k `sd`, and the front's factor against the rear's
-    exp(`balance_log`) (forgets all evidence)."""
+def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float, sd: float) -> None:
+    """Start from tyres `centre` x nominal, with sd of log k `sd` (forgets all evidence, the balance's too)."""
     H = int(prm[B_COUNT])
     lc = math.log(centre)
     for h in range(H):
@@ -263,7 +261,6 @@ def set_prior(
     st[_scalars0(H) + SC_BAL_SETTLE] = 0.0
     for side in range(N_BALANCE):
         st[_scalars0(H) + SC_BALANCE + side] = 0.0
-    st[_scalars0(H) + SC_BAL_PRIOR] = balance_log
     best = 0
     for h in range(1, H):
         if abs(math.log(scale[h]) - lc) < abs(math.log(scale[best]) - lc):
@@ -465,7 +462,7 @@ def bank_step(
     H = int(prm[B_COUNT])
     G = grid.shape[0]
     if st[_scalars0(H) + SC_INIT] == 0.0:
-        set_prior(st, prm, scale, 1.0, prm[B_PRIOR_SD], 0.0)
+        set_prior(st, prm, scale, 1.0, prm[B_PRIOR_SD])
     i, w = grid_position(grid, u)
     e = scratch[SC_E : SC_E + kf.N_Y]
     zh = scratch[SC_ZH : SC_ZH + kf.N_Z]
@@ -655,26 +652,20 @@ def _balance_evidence(
         st[sc + SC_BAL_SETTLE] -= 1.0
     out[OUT_BALANCE] = largest
     out[OUT_BALANCE_LOG], out[OUT_BALANCE_LOG_SD] = balance_posterior(
-        st[sc + SC_BALANCE],
-        st[sc + SC_BALANCE + 1],
-        prm[B_BALANCE_LOG_STEP],
-        prm[B_BALANCE_PRIOR_SD],
-        st[sc + SC_BAL_PRIOR],
+        st[sc + SC_BALANCE], st[sc + SC_BALANCE + 1], prm[B_BALANCE_LOG_STEP], prm[B_BALANCE_PRIOR_SD]
     )
 
 
 @njit(cache=True)
-def balance_posterior(
-    lower: float, upper: float, step: float, prior_sd: float, prior_mean: float = 0.0
-) -> tuple[float, float]:
+def balance_posterior(lower: float, upper: float, step: float, prior_sd: float) -> tuple[float, float]:
     """(log of the front's factor, its sd) from Lambda of the filters at -step and +step (`lower`, `upper`, nats
-    against the file's balance at 0) and a Gaussian prior of sd `prior_sd` around `prior_mean`: the log-likelihood
-    as a parabola through (-step, lower), (0, 0), (step, upper), plus the prior's. A curvature that is not a peak (both
+    against the file's balance at 0) and a Gaussian prior of sd `prior_sd` around 0: the log-likelihood as a
+    parabola through (-step, lower), (0, 0), (step, upper), plus the prior's. A curvature that is not a peak (both
     balances better than the file's: no balance between them explains the data) is an infinite sd."""
     precision = -(lower + upper) / (step * step) + 1.0 / (prior_sd * prior_sd)
     if not precision > 0.0:  # also a NaN
         return 0.0, math.inf
-    slope = (upper - lower) / (2.0 * step) + prior_mean / (prior_sd * prior_sd)
+    slope = (upper - lower) / (2.0 * step)
     return slope / precision, 1.0 / math.sqrt(precision)
 
 

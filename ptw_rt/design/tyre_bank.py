@@ -3,7 +3,7 @@
 Every real scooter's tyres differ from the nominal file (pressure, temperature, wear, a wet road). We
 parametrise the difference by one factor k on all four small-slip stiffnesses (C_af, C_gf, C_ar, C_gr):
 it is what the data identify under ordinary riding (docs/estimator.md, "Tyres"), and what a changed road
-friction does; and the front's factor against the rear's from two more filters (the balance, below). The bank
+friction does; and two more filters check the front's factor against the rear's (the balance, below). The bank
 holds the steady-state fusion filter (ptw_rt.design.kalman) designed for the vehicle with its tyres scaled by
 each k of a log-spaced grid, at every grid speed, plus each filter's innovation covariance S; the runtime
 (ptw_rt.core.tyre_bank) weighs the filters by the likelihood of their innovations.
