@@ -165,8 +165,8 @@ TYRE_BANK_SCHEMA = Section(
         # differs from the rear (pressure, wear, another make), and a front x0.8 was VALID 23 % off. How much better
         # each explains the learning cycles (with the bank's memory) is a parabola in the log of the front's factor:
         # its peak is the balance the evidence points to, its curvature with a prior of `balance_prior_sd` (log) its
-        # spread. Once that spread is within `valid_balance_log_sd` and the peak half a step from the file's
-        # balance, neither axle is VALID (docs/estimator.md, "Tyres that differ by axle: the balance check")
+        # spread. Neither axle is VALID unless that spread is within `valid_balance_log_sd` and the peak within half a
+        # step of the file's balance (docs/estimator.md, "Tyres that differ by axle: the balance check")
         "balance_step": (Number("", gt=1.02, le=2), 1.15),
         "balance_prior_sd": (Number("", gt=0, le=2), 0.1),
         "valid_balance_log_sd": (Number("", gt=0, le=1), 0.04),

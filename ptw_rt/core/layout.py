@@ -118,7 +118,7 @@ E_ROLL_SD = 31  # rad, standard deviation of the published roll (the attitude fi
 E_ROLL_FUSION = 32  # rad, the Sharp-model fusion filter's roll after it fused the kinematic roll (diagnostic)
 E_PITCH_GYRO_BIAS = 33  # rad/s, the attitude filter's pitch-gyro bias estimate
 E_LAT_ACCEL_BIAS = 34  # m/s^2, the attitude filter's lateral-accelerometer bias estimate
-E_TYRE_SCALE = 35  # the tyres' scale k (published stiffness = k x nominal, the front's x E_TYRE_BALANCE; the bank's)
+E_TYRE_SCALE = 35  # the tyres' scale k (published stiffness = k x nominal; the tyre bank's estimate)
 E_TYRE_LOG_SD = 36  # its posterior spread, sd of log k
 E_TYRE_NIS = 37  # the most likely tyre filter's windowed normalised innovation (consistency, expected 5)
 E_TYRE_LEARNING = 38  # 1 while the ride's evidence moves the tyre estimate
@@ -133,9 +133,9 @@ E_STEER_RESIDUAL = 46  # rad, running mean of steer - kinematic steer riding nea
 E_TYRE_CHANGE = 47  # nats, the tyre bank's change statistic (a neighbouring tyre explains the last cycles better)
 E_ROLL_UIO_SENSORS = 48  # rad, the UIHOSMO channel's own roll (raw IMU and speed, no attitude filter; 0 until started)
 E_PITCH_DOUBTED = 49  # 1 while the longitudinal accelerometer against GPS doubts the attitude's pitch: no tyre learning
-E_TYRE_BALANCE = 50  # the front tyre's stiffness factor against the rear's, learned (the published front's, within the
-# bank's balance filters; 1 = the file's balance)
-E_TYRE_BALANCE_DOUBTED = 51  # 1 while that balance is not known well enough: neither axle's stiffness VALID
+E_TYRE_BALANCE = 50  # the front tyre's stiffness factor against the rear's the tyre bank's check points to (not applied
+# to the published front; 1 = the file's balance)
+E_TYRE_BALANCE_DOUBTED = 51  # 1 while it does not confirm the file's balance: neither axle's stiffness VALID
 ESTIMATES_SIZE = 52
 
 # per-signal validity bits (E_VALID), one per published signal group
