@@ -44,18 +44,13 @@ def design_bank(
     p: VehicleParameters, grid: np.ndarray, dt: float, kalman_tuning: KalmanTuning, tuning: TyreBankTuning
 ) -> dict[str, np.ndarray]:
     ks = tuning.scales()
-    phi, gain, gd, sinv, logdet = [], [], [], [], []
+    tables = _EvidenceTables()
     gain_pub = []
     published = kalman_tuning.published_force_noise
     for k in ks:
         pk = p.scaled(stiffness=float(k))
         for u in grid:
-            Phi, K, Gd, S = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning)
-            phi.append(Phi)
-            gain.append(K)
-            gd.append(Gd)
-            sinv.append(np.linalg.inv(S))
-            logdet.append(np.linalg.slogdet(S)[1])
+            Phi, K, Gd = tables.add(pk, float(u), dt, kalman_tuning)
             Phi_pub, K, Gd_pub, _ = kalman.design_point_with_innovation(
                 pk, float(u), dt, kalman_tuning, published, kalman_tuning.published_torque_noise
             )
@@ -66,14 +61,36 @@ def design_bank(
             gain_pub.append(K)
     return {
         "tb_scale": ks,
-        "tb_Phi": np.array(phi),
-        "tb_K": np.array(gain),
-        "tb_Gd": np.array(gd),
-        "tb_Sinv": np.array(sinv),
-        "tb_logdet": np.array(logdet).reshape(-1, 1, 1),
+        **tables.arrays("tb_"),
         "tb_K_pub": np.array(gain_pub),
         **_balance_filters(p, ks, grid, dt, kalman_tuning, tuning),
     }
+
+
+class _EvidenceTables:
+    """An evidence filter's tables, one grid speed at a time: Phi, K, Gd and its innovation's S as S^-1 and
+    log det S (what the runtime's likelihoods need)."""
+
+    def __init__(self) -> None:
+        self.phi, self.gain, self.gd, self.sinv, self.logdet = [], [], [], [], []
+
+    def add(self, p: VehicleParameters, u: float, dt: float, tuning: KalmanTuning):
+        Phi, K, Gd, S = kalman.design_point_with_innovation(p, u, dt, tuning)
+        self.phi.append(Phi)
+        self.gain.append(K)
+        self.gd.append(Gd)
+        self.sinv.append(np.linalg.inv(S))
+        self.logdet.append(np.linalg.slogdet(S)[1])
+        return Phi, K, Gd
+
+    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        return {
+            prefix + "Phi": np.array(self.phi),
+            prefix + "K": np.array(self.gain),
+            prefix + "Gd": np.array(self.gd),
+            prefix + "Sinv": np.array(self.sinv),
+            prefix + "logdet": np.array(self.logdet).reshape(-1, 1, 1),
+        }
 
 
 def _balance_filters(
@@ -85,7 +102,7 @@ def _balance_filters(
     tuning: TyreBankTuning,
 ) -> dict[str, np.ndarray]:
     """The balance check's evidence filters (module doc), side-major, then hypothesis, then grid speed."""
-    phi, gain, gd, sinv, logdet = [], [], [], [], []
+    tables = _EvidenceTables()
     C = kalman.output_matrix(p)
     for front in balances(tuning):
         for k in ks:
@@ -93,19 +110,8 @@ def _balance_filters(
             if not np.array_equal(kalman.output_matrix(pk), C):
                 raise ValueError("the balance check's filters measure through another output matrix than the bank's")
             for u in grid:
-                Phi, K, Gd, S = kalman.design_point_with_innovation(pk, float(u), dt, kalman_tuning)
-                phi.append(Phi)
-                gain.append(K)
-                gd.append(Gd)
-                sinv.append(np.linalg.inv(S))
-                logdet.append(np.linalg.slogdet(S)[1])
-    return {
-        "tb_bal_Phi": np.array(phi),
-        "tb_bal_K": np.array(gain),
-        "tb_bal_Gd": np.array(gd),
-        "tb_bal_Sinv": np.array(sinv),
-        "tb_bal_logdet": np.array(logdet).reshape(-1, 1, 1),
-    }
+                tables.add(pk, float(u), dt, kalman_tuning)
+    return tables.arrays("tb_bal_")
 
 
 def bank_spectral_radii(data, grid: np.ndarray, between: int) -> tuple[float, float]:
