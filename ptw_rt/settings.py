@@ -170,6 +170,13 @@ TYRE_BANK_SCHEMA = Section(
         "balance_step": (Number("", gt=1.02, le=2), 1.15),
         "balance_prior_sd": (Number("", gt=0, le=2), 0.1),
         "valid_balance_log_sd": (Number("", gt=0, le=1), 0.04),
+        # the steer zero check: two more filters beside the most likely one, its steer less a zero error of
+        # -`zero_step` and +`zero_step` counts. Neither axle is VALID unless the zero error their evidence points to
+        # has a spread within `valid_zero_sd` counts and lies within `zero_inner` counts of the conditioning's zero
+        # (docs/estimator.md, "The steer zero the balance rests on")
+        "zero_step": (Number("count", gt=0, le=2), 0.25),
+        "valid_zero_sd": (Number("count", gt=0, le=2), 0.05),
+        "zero_inner": (Number("count", gt=0, le=2), 0.5),
         "min_learning_speed": (Number("m/s", gt=0, le=100), 8.0),
         # ... and only once the attitude filter knows the yaw gyro's bias well enough: its uncertainty shifts the
         # kinematic steer the slip angles are measured against; learning waits while that could move k by more
@@ -317,6 +324,12 @@ SENSORS_SCHEMA = Section(
         # beyond, stays a fault for the steer check)
         "steer_zero_time_constant": (Number("s", gt=0, le=3600), 10.0),
         "steer_zero_max_shift": (Number("count", ge=0, le=5), 1.25),
+        # how far the configured zero may be off before anything is learned (one sd): what the tyre bank's steer
+        # zero check assumes of it a priori, less as it is learned (docs/estimator.md, "The steer zero the balance
+        # rests on")
+        "steer_zero_sd": (Number("count", gt=0, le=5), 1.0),
+        # and the time constant by which the zero follows what the tyre bank's zero check sees of it in corners
+        "steer_zero_evidence_time_constant": (Number("s", gt=0, le=3600), 3.0),
     },
 )
 
@@ -485,6 +498,9 @@ class TyreBankTuning:
     balance_step: float
     balance_prior_sd: float
     valid_balance_log_sd: float
+    zero_step: float  # counts
+    valid_zero_sd: float  # counts
+    zero_inner: float  # counts
     bias_window: float
     excitation_window: float
     min_excitation_lateral_accel: float
@@ -626,6 +642,8 @@ class SensorSettings:
     gyro_calibration_max_rate: float  # rad/s
     steer_zero_time_constant: float  # s of straight riding
     steer_zero_max_shift: float  # counts
+    steer_zero_sd: float  # counts: the configured zero's error a priori (sd)
+    steer_zero_evidence_time_constant: float  # s
 
     @property
     def steer_count_rad(self) -> float:

@@ -99,6 +99,7 @@ CONTRACT_OUTPUTS: dict[str, dict] = {
             "TireChange": (None, 0.5, 0.0, 63.5),  # added in v1.4 (a road that changed: the bank's change statistic)
             "PitchDoubted": (None, 1, 0, 1),  # added in v1.6 (the tyres wait while the pitch is doubted)
             "TireBalanceDoubted": (None, 1, 0, 1),  # added in v1.7 (the front/rear balance not known for VALID)
+            "SteerZeroDoubted": (None, 1, 0, 1),  # added in v1.8 (the steer zero the balance rests on not confirmed)
         },
     },
     # added in v1.2 (issue #16: the plausibility monitor); every earlier name unchanged

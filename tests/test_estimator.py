@@ -218,7 +218,7 @@ def test_a_reset_keeps_the_tyre_evidence_whole_and_restarts_every_filter():
     before = bank.copy()
     est.reset()
     inits = [first + h * tb.BLOCK + kf.INIT for first in (0, tb._published0(H)) for h in range(H)]
-    inits += [tb._balance0(H) + side * tb.BLOCK + kf.INIT for side in range(tb.N_BALANCE)]
+    inits += [tb._balance0(H) + side * tb.BLOCK + kf.INIT for side in range(tb.N_CHECKS)]  # the checks' filters
     assert (bank[inits] == 0.0).all()
     untouched = np.ones(bank.size, dtype=bool)
     untouched[inits] = False
@@ -504,3 +504,26 @@ def test_a_front_tyre_unlike_the_rear_is_never_valid(front):
         assert front_valid["valid_frames"] == 0
         assert doubted.mean() > 0.5
         assert (ev.estimates[-1, lay.E_TYRE_BALANCE] < 1.0) == (front < 1.0)  # it points the right way
+
+
+@pytest.mark.parametrize(("front", "offset"), [(1.0, 1), (0.8, -1), (1.2, 1)])
+def test_the_steer_zero_is_learned_in_corners_and_the_balance_read_through_it(front, offset):
+    """The encoder's zero a count off on a slalom, which has no straight to learn it on. A count is a slip on the front
+    alone: a front x0.82 read as the file's balance and was VALID 20-28 % off (random set 9001). The tyre bank's zero
+    check finds the zero in the corners (`conditioning.learn_steer_zero_from_evidence` moves it there) and its joint
+    fit reads the balance through it: the file's balance confirmed and VALID right, a front x0.8 or x1.2 read as
+    itself and never VALID (docs/estimator.md, "The steer zero the balance rests on")."""
+    from ptw_rt.eval.evaluate import evaluate_scenario
+    from ptw_rt.eval.matrix import cell_metrics
+
+    ev = evaluate_scenario("slalom_30", perturb=[f"front_stiffness={front}", f"steer_offset={offset}"])
+    count = 2.0 * math.pi / 1024
+    assert abs(ev.estimates[-1, lay.E_STEER_ZERO_ERROR]) <= 0.05 * count  # the evidence agrees with the zero learned
+    assert ev.estimates[-1, lay.E_STEER_ZERO_DOUBTED] == 0.0
+    assert ev.estimates[-1, lay.E_TYRE_BALANCE] == pytest.approx(front, rel=0.05)
+    front_valid = cell_metrics(ev)["stiffness_valid"]["front_cornering"]
+    if front == 1.0:
+        assert front_valid["valid_share_second_half"] >= 0.25  # once the zero is learned (0 before)
+        assert front_valid["max_abs_err_pct"] <= 5.0
+    else:
+        assert front_valid["valid_frames"] == 0

@@ -79,6 +79,7 @@ class Source:
                 "TireChange": 0.5,
                 "PitchDoubted": 0,
                 "TireBalanceDoubted": 0,
+                "SteerZeroDoubted": 0,
             }
         return {
             "EST_TireStiffness_Valid": 1,

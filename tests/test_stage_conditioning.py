@@ -21,10 +21,10 @@ def _inputs(p=0.0, q=0.0, r=0.0, f_y=0.0, f_z=-G, steer=512.0, reasons=0):
     )
 
 
-def _step(b, inputs, speed, attitude, imu_age=0.0):
+def _step(b, inputs, speed, attitude, imu_age=0.0, zero_error=0.0, zero_error_sd=math.inf):
     s = lay.new_sample()
     s[lay.S_IMU_AGE] = imu_age
-    cnd.conditioning_stage(s, b.state, b.params, b.outputs, inputs, speed, attitude)
+    cnd.conditioning_stage(s, b.state, b.params, b.outputs, inputs, speed, attitude, zero_error, zero_error_sd)
     return b.outputs
 
 
@@ -166,3 +166,42 @@ def test_the_learned_steer_zero_is_bounded(learner, settings):
     out = _learn(learner, steer=516.0, seconds=200.0)
     assert out[cnd.OUT_STEER_ZERO_SHIFT] == pytest.approx(settings.sensors.steer_zero_max_shift * COUNT)
     assert out[cnd.OUT_STEER] == pytest.approx((4.0 - settings.sensors.steer_zero_max_shift) * COUNT)
+
+
+def test_the_steer_zero_follows_the_tyre_banks_evidence_once_it_is_known(learner, settings):
+    """In a corner (nothing learned riding straight) the zero moves by the error the tyre bank's zero check points
+    to, with its time constant, only while that error's sd is within the check's valid spread, and within its
+    bound; a non-finite error (the bank did not run) moves nothing."""
+    attitude = att.OUTPUTS.vector({"ok": 1.0, "yaw_rate": 0.1}, strict=False)
+    speed = spd.OUTPUTS.vector(
+        accel_offset=0.0, accel_offset_age=0.0, gps_age=0.0, gps_doubted=0.0, gps_lost=0.0, u=20.0, known=1.0
+    )
+    inputs = _inputs(r=0.1, f_y=2.0, steer=515.0)
+    known = 0.5 * settings.estimator.tyre_bank.valid_zero_sd * COUNT
+    for sd in (2.0 * settings.estimator.tyre_bank.valid_zero_sd * COUNT, math.inf, math.nan):
+        out = _step(learner, inputs, speed, attitude, zero_error=0.5 * COUNT, zero_error_sd=sd)
+        assert out[cnd.OUT_STEER_ZERO_SHIFT] == 0.0
+    out = _step(learner, inputs, speed, attitude, zero_error=math.nan, zero_error_sd=known)
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == 0.0
+    time_constant = settings.sensors.steer_zero_evidence_time_constant
+    cycles = int(time_constant / learner.params[cnd.P_DT])
+    for _ in range(cycles):  # the bank re-centres on the moved zero: the error left shrinks as the zero moves
+        left = 0.5 * COUNT - learner.state[cnd.ST_STEER_ZERO_SHIFT]
+        out = _step(learner, inputs, speed, attitude, zero_error=left, zero_error_sd=known)
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == pytest.approx(0.5 * COUNT * (1.0 - math.exp(-1.0)), rel=0.01)
+    for _ in range(3 * cycles):
+        out = _step(learner, inputs, speed, attitude, zero_error=10.0 * COUNT, zero_error_sd=known)
+    assert out[cnd.OUT_STEER_ZERO_SHIFT] == pytest.approx(settings.sensors.steer_zero_max_shift * COUNT)
+
+
+def test_the_steer_zeros_spread_shrinks_as_it_is_learned_riding_straight(learner, settings):
+    """What the tyre bank's zero check assumes of the zero a priori: the configured sd at first, its share
+    exp(-seconds / time constant) left after straight riding, never below the floor of what straight riding tells."""
+    first = _learn(learner, steer=512.0, seconds=0.01)[cnd.OUT_STEER_ZERO_SD]
+    assert first == pytest.approx(settings.sensors.steer_zero_sd * COUNT, rel=0.01)
+    after = _learn(learner, steer=512.0, seconds=10.0)[cnd.OUT_STEER_ZERO_SD]
+    assert after == pytest.approx(
+        math.hypot(settings.sensors.steer_zero_sd * math.exp(-1.0), cnd.STEER_ZERO_FLOOR) * COUNT, rel=0.01
+    )
+    late = _learn(learner, steer=512.0, seconds=100.0)[cnd.OUT_STEER_ZERO_SD]
+    assert late == pytest.approx(cnd.STEER_ZERO_FLOOR * COUNT, rel=0.01)

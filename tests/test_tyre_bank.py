@@ -23,6 +23,8 @@ from ptw_rt.settings import load_settings
 
 DT = 0.01
 U = 20.0
+COUNT_RAD = 2.0 * math.pi / 1024  # the encoder's count
+ZERO_PRIOR_SD = COUNT_RAD  # the steer zero check's prior: a count
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +92,7 @@ def _run(
     if half_width is not None:
         tuning = replace(tuning, running_half_width=half_width)
     H = len(t["tb_scale"])
-    prm = tb.bank_params(H, DT, tuning)
+    prm = tb.bank_params(H, DT, tuning, COUNT_RAD)
     st = tb.new_state(H)
     tb.set_prior(st, prm, t["tb_scale"], start, tuning.prior_sd)
     out = np.zeros(tb.OUT_SIZE)
@@ -102,7 +104,7 @@ def _run(
     for k, y in enumerate(Y):
         tb.bank_step(
             st, out, scratch, prm, y, U, y[4], True, True, learn, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
-            t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"], gain_pub, *_balance_tables(t),
+            t["tb_Gd"], no_correction, t["tb_Sinv"], t["tb_logdet"], gain_pub, *_balance_tables(t), 0.0, ZERO_PRIOR_SD,
         )  # fmt: skip
         trace[k, :4] = out[tb.OUT_SCALE], out[tb.OUT_LOG_SD], out[tb.OUT_MAP_NIS], out[tb.OUT_CHANGE]
         trace[k, 4:] = out[tb.OUT_BALANCE], out[tb.OUT_BALANCE_LOG], out[tb.OUT_BALANCE_LOG_SD]
@@ -225,7 +227,7 @@ def test_a_nan_measurement_poisons_nothing_for_good(bank):
     Y = _ride(s, 1.14, 40.0, excite=True, seed=5)
     Y[1500] = np.nan
     H = len(t["tb_scale"])
-    prm = tb.bank_params(H, DT, tuning)
+    prm = tb.bank_params(H, DT, tuning, COUNT_RAD)
     st = tb.new_state(H)
     tb.set_prior(st, prm, t["tb_scale"], 1.0, tuning.prior_sd)
     out = np.zeros(tb.OUT_SIZE)
@@ -234,7 +236,8 @@ def test_a_nan_measurement_poisons_nothing_for_good(bank):
     for y in Y:
         tb.bank_step(
             st, out, scratch, prm, y, U, y[4], True, True, True, grid, t["tb_scale"], t["tb_Phi"], t["tb_K"], C,
-            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"], t["tb_K_pub"], *_balance_tables(t),
+            t["tb_Gd"], np.zeros(7), t["tb_Sinv"], t["tb_logdet"], t["tb_K_pub"], *_balance_tables(t), 0.0,
+            ZERO_PRIOR_SD,
         )  # fmt: skip
         if not np.isfinite(out[tb.OUT_Z : tb.OUT_Z + ck.N_Z]).all():
             tb.restart_filters(st, prm)  # what the lateral stage does
@@ -350,7 +353,7 @@ def test_a_hypothesis_that_joins_the_window_takes_its_neighbours_evidence_while_
     tuning = replace(tuning, running_half_width=1, join_settle_time=0.3)
     Y = _ride(s, 1.0, 26.0, excite=True, seed=11, k_after=1.0 / 1.3**2, at=20.0)
     H = len(t["tb_scale"])
-    settle = int(tb.bank_params(H, DT, tuning)[tb.B_JOIN_SETTLE])
+    settle = int(tb.bank_params(H, DT, tuning, COUNT_RAD)[tb.B_JOIN_SETTLE])
     assert settle == 30
     raw = slice(tb._logl_raw0(H), tb._logl_raw0(H) + H)
     low = tb._scalars0(H) + tb.SC_LOW
@@ -441,16 +444,57 @@ def test_the_balance_takes_no_evidence_without_learning(bank):
     assert np.allclose(trace[:, 6], tuning.balance_prior_sd)
 
 
-def test_the_balance_posterior_is_the_parabolas_peak_and_curvature():
-    """Lambda at -step and +step of a log-likelihood -(x - x0)^2 / (2 sd^2) (relative to x = 0) give back x0 and sd
-    (with a flat prior); both balances better than the file's is no peak: infinite sd."""
-    step, x0, sd = 0.14, -0.05, 0.03
+B_STEP, Z_STEP = math.log(1.15), 0.25 * COUNT_RAD  # the checks' steps: the front's log factor, the steer zero
 
-    def lam(x):
-        return -((x - x0) ** 2) / (2 * sd * sd) + x0 * x0 / (2 * sd * sd)
 
-    x, s = tb.balance_posterior(lam(-step), lam(step), step, 1e6)
-    assert x == pytest.approx(x0, rel=1e-9)
-    assert s == pytest.approx(sd, rel=1e-9)
-    assert tb.balance_posterior(5.0, 5.0, step, 1e6)[1] == math.inf
-    assert tb.balance_posterior(0.0, 0.0, step, 0.1) == (0.0, pytest.approx(0.1))
+def _quadratic(b0, z0, sb, sz, rho):
+    """A joint log-likelihood in (b, z) peaking at (b0, z0) with marginal sds sb, sz and correlation rho, and the
+    checks' Lambdas of it (nats against (0, 0)) in CHECK_TABLES' order."""
+    cov = np.array([[sb * sb, rho * sb * sz], [rho * sb * sz, sz * sz]])
+    info = np.linalg.inv(cov)
+
+    def ll(b, z):
+        d = np.array([b - b0, z - z0])
+        return -0.5 * d @ info @ d
+
+    points = [(-B_STEP, 0.0), (B_STEP, 0.0), (0.0, -Z_STEP), (0.0, Z_STEP), (B_STEP, Z_STEP)]
+    assert [(x / B_STEP, y / Z_STEP) for x, y in points] == [
+        (-1.0 if t == 0 else (1.0 if t == 1 else 0.0), z) for t, z in zip(tb.CHECK_TABLES, tb.CHECK_ZERO, strict=True)
+    ]
+    return [ll(b, z) - ll(0.0, 0.0) for b, z in points]
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9, -0.6])
+def test_the_checks_posterior_is_the_joint_peak_and_the_marginal_spreads(rho):
+    """The five Lambdas of a quadratic give back its peak and its marginal sds (flat priors), whatever the
+    correlation: a zero error that reads as a front tyre widens the balance's spread instead of moving its peak. A
+    saddle (both balances better than the centre) is no peak: infinite sds; with no evidence the priors are all."""
+    b0, z0, sb, sz = 0.12, -0.6 * Z_STEP, 0.03, 0.2 * Z_STEP
+    lam = _quadratic(b0, z0, sb, sz, rho)
+    b, b_sd, z, z_sd = tb.check_posterior(*lam, B_STEP, Z_STEP, 1e6, 1e6)
+    assert (b, b_sd, z, z_sd) == pytest.approx((b0, sb, z0, sz), rel=1e-6)
+    assert tb.check_posterior(5.0, 5.0, 0.0, 0.0, 0.0, B_STEP, Z_STEP, 1e6, 1e6)[1] == math.inf
+    assert tb.check_posterior(0.0, 0.0, 0.0, 0.0, 0.0, B_STEP, Z_STEP, 0.1, COUNT_RAD) == pytest.approx(
+        (0.0, 0.1, 0.0, COUNT_RAD)
+    )
+
+
+def test_moving_the_zero_recentres_the_checks_evidence_and_fades_it():
+    """The conditioning moves its zero by a third of a zero step: the checks' quadratic keeps its peak's balance, its
+    zero error is a third of a step less, and the evidence fades by exp(-1/3 / RECENTRE_STEPS) (spreads grow by its
+    square root)."""
+    H = 14
+    st = tb.new_state(H)
+    sc = tb._scalars0(H)
+    b0, z0, sb, sz = 0.05, 0.4 * Z_STEP, 0.03, 0.2 * Z_STEP
+    st[sc + tb.SC_BALANCE : sc + tb.SC_BALANCE + tb.N_CHECKS] = _quadratic(b0, z0, sb, sz, 0.7)
+    tb._recentre_zero(st, H, Z_STEP, Z_STEP / 3.0)
+    assert st[sc + tb.SC_ZERO_SHIFT] == Z_STEP / 3.0
+    lam = st[sc + tb.SC_BALANCE : sc + tb.SC_BALANCE + tb.N_CHECKS]
+    b, b_sd, z, z_sd = tb.check_posterior(*lam, B_STEP, Z_STEP, 1e6, 1e6)
+    fade = math.exp(-1.0 / 3.0 / tb.RECENTRE_STEPS)
+    assert (b, z) == pytest.approx((b0, z0 - Z_STEP / 3.0), rel=1e-6)
+    assert (b_sd, z_sd) == pytest.approx((sb / math.sqrt(fade), sz / math.sqrt(fade)), rel=1e-6)
+    before = st.copy()
+    tb._recentre_zero(st, H, Z_STEP, Z_STEP / 3.0)  # the zero did not move: nothing changes
+    assert np.array_equal(st, before)

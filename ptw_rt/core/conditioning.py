@@ -45,6 +45,8 @@ TWO_PI = 2.0 * math.pi
 STRAIGHT_YAW_RATE = 0.02  # rad/s
 STRAIGHT_LAT_ACCEL = 0.5  # m/s^2
 STEER_ZERO_MIN_SPEED = 5.0  # m/s: slower, the rider balances with the handlebar
+# counts: how well straight riding can tell the zero at best (the residual's running mean above), its sd's floor
+STEER_ZERO_FLOOR = 0.1
 
 STATE = Layout(
     "ST_",
@@ -71,6 +73,10 @@ PARAMS = Layout(
     max_roll=1,  # rad: a published roll beyond is a divergence
     steer_zero_rate=1,  # share of the straight-riding residual learned per cycle (dt / time constant)
     steer_zero_max_shift=1,  # rad: bound of the learned zero error
+    steer_zero_sd=1,  # rad: the configured zero's error a priori (sd)
+    steer_zero_floor=1,  # rad: STEER_ZERO_FLOOR
+    steer_zero_evidence_sd=1,  # rad: the tyre bank's zero check moves the zero once its sd is within this ...
+    steer_zero_evidence_rate=1,  # ... by this share of the error it points to per cycle (dt / time constant)
     wheelbase=1,  # m
     cos_caster=1,
 )
@@ -87,6 +93,10 @@ PARAMS = Layout(
     P_MAX_ROLL,
     P_STEER_ZERO_RATE,
     P_STEER_ZERO_MAX_SHIFT,
+    P_STEER_ZERO_SD,
+    P_STEER_ZERO_FLOOR,
+    P_STEER_ZERO_EVIDENCE_SD,
+    P_STEER_ZERO_EVIDENCE_RATE,
     P_WHEELBASE,
     P_COS_CASTER,
 ) = PARAMS.offsets
@@ -108,6 +118,7 @@ OUTPUTS = Layout(
     roll_last=1,  # rad: the published roll of the last cycle
     diverged=1,  # 1: the roll was implausible and replaced (an observer-reset event for the supervisor)
     steer_zero_shift=1,  # rad: the learned steer-encoder zero error, already removed from `steer`
+    steer_zero_sd=1,  # rad: how far the zero may still be off (`steer_zero_sd`)
     steer_lead=1,  # s: how much newer the steer reading is than the IMU's (`steer_lead`)
 )
 (
@@ -126,6 +137,7 @@ OUTPUTS = Layout(
     OUT_ROLL_LAST,
     OUT_DIVERGED,
     OUT_STEER_ZERO_SHIFT,
+    OUT_STEER_ZERO_SD,
     OUT_STEER_LEAD,
 ) = OUTPUTS.offsets
 
@@ -146,6 +158,10 @@ def build_params(settings, design) -> np.ndarray:
         max_roll=est.max_roll,
         steer_zero_rate=float(design.sample_time) / sens.steer_zero_time_constant,
         steer_zero_max_shift=sens.steer_zero_max_shift * sens.steer_count_rad,
+        steer_zero_sd=sens.steer_zero_sd * sens.steer_count_rad,
+        steer_zero_floor=STEER_ZERO_FLOOR * sens.steer_count_rad,
+        steer_zero_evidence_sd=est.tyre_bank.valid_zero_sd * sens.steer_count_rad,
+        steer_zero_evidence_rate=float(design.sample_time) / sens.steer_zero_evidence_time_constant,
         wheelbase=veh.l_f + veh.l_r,
         cos_caster=math.cos(veh.caster),
     )
@@ -180,6 +196,29 @@ def learn_steer_zero(
     bound = prm[P_STEER_ZERO_MAX_SHIFT]
     st[ST_STEER_ZERO_SHIFT] = min(max(shift, -bound), bound)
     st[ST_STEER_ZERO_SECONDS] += prm[P_DT]
+
+
+@njit(cache=True)
+def learn_steer_zero_from_evidence(st: np.ndarray, prm: np.ndarray, error: float, error_sd: float) -> None:
+    """Move the learned zero error by `steer_zero_evidence_rate` of the error the tyre bank's zero check points to
+    (`error`, rad, beyond this zero), once its sd is within `steer_zero_evidence_sd`; within +-`steer_zero_max_shift`.
+    The check sees the zero in corners, where straight riding cannot (a slalom has no straight), apart from the
+    front tyre (docs/estimator.md, "The steer zero the balance rests on"); the bank re-centres its evidence on the
+    new zero."""
+    if not error_sd <= prm[P_STEER_ZERO_EVIDENCE_SD] or not math.isfinite(error):  # also a NaN
+        return
+    bound = prm[P_STEER_ZERO_MAX_SHIFT]
+    shift = st[ST_STEER_ZERO_SHIFT] + prm[P_STEER_ZERO_EVIDENCE_RATE] * error
+    st[ST_STEER_ZERO_SHIFT] = min(max(shift, -bound), bound)
+
+
+@njit(cache=True)
+def steer_zero_sd(st: np.ndarray, prm: np.ndarray) -> float:
+    """rad: how far the zero may still be off. The learning is a first-order filter of `steer_zero_rate` per cycle
+    of straight riding, so of the configured zero's error (sd `steer_zero_sd`) exp(-seconds / time constant) is
+    left; straight riding tells it no better than its floor (a restored zero counts a time constant)."""
+    left = prm[P_STEER_ZERO_SD] * math.exp(-st[ST_STEER_ZERO_SECONDS] * prm[P_STEER_ZERO_RATE] / prm[P_DT])
+    return math.sqrt(left * left + prm[P_STEER_ZERO_FLOOR] ** 2)
 
 
 @njit(cache=True)
@@ -248,8 +287,11 @@ def conditioning_stage(
     inputs: np.ndarray,
     speed: np.ndarray,
     attitude: np.ndarray,
+    zero_error_before: float,
+    zero_error_sd_before: float,
 ) -> None:
-    """One cycle from the inputs, speed and attitude stages' outputs (and the Sample's IMU age)."""
+    """One cycle from the inputs, speed and attitude stages' outputs (and the Sample's IMU age), and the steer zero
+    error the tyre bank's check pointed to the cycle before (rad, and its sd: `learn_steer_zero_from_evidence`)."""
     dt = prm[P_DT]
     raw = inputs[inp.OUT_RAW : inp.OUT_RAW + inp.N_RAW]
     u = speed[spd.OUT_U]
@@ -296,6 +338,7 @@ def conditioning_stage(
         and math.isfinite(delta + r_ground + a_y + u)
     ):
         learn_steer_zero(st, prm, delta, r_ground, a_y, u)
+    learn_steer_zero_from_evidence(st, prm, zero_error_before, zero_error_sd_before)
     delta -= st[ST_STEER_ZERO_SHIFT]
     if speed_low:
         reasons |= REASON_SPEED_LOW
@@ -338,6 +381,7 @@ def conditioning_stage(
     out[OUT_ROLL] = roll
     out[OUT_DIVERGED] = 1.0 if diverged else 0.0
     out[OUT_STEER_ZERO_SHIFT] = st[ST_STEER_ZERO_SHIFT]
+    out[OUT_STEER_ZERO_SD] = steer_zero_sd(st, prm)
     out[OUT_STEER_LEAD] = steer_lead(sample[S_IMU_AGE], sample[S_STEER_AGE], dt)
 
 

@@ -90,11 +90,15 @@ from ptw_rt.core.layout import (
     E_STEER,
     E_STEER_RATE,
     E_STEER_RESIDUAL,
+    E_STEER_ZERO_DOUBTED,
+    E_STEER_ZERO_ERROR,
+    E_STEER_ZERO_ERROR_SD,
     E_TORQUE_RESIDUAL,
     E_TORQUE_UIHOSMO,
     E_TORQUE_UIO_SENSORS,
     E_TYRE_BALANCE,
     E_TYRE_BALANCE_DOUBTED,
+    E_TYRE_BALANCE_LOG_SD,
     E_TYRE_CHANGE,
     E_TYRE_LEARNING,
     E_TYRE_LOG_SD,
@@ -175,6 +179,10 @@ def publish(
     est[E_TYRE_CHANGE] = o_lat[lat.OUT_TYRE_CHANGE]
     est[E_TYRE_BALANCE] = math.exp(o_lat[lat.OUT_TYRE_BALANCE_LOG])  # a check: not applied to the front
     est[E_TYRE_BALANCE_DOUBTED] = o_sup[sup.OUT_TYRE_BALANCE_DOUBTED]
+    est[E_STEER_ZERO_ERROR] = o_lat[lat.OUT_TYRE_ZERO_ERROR]
+    est[E_STEER_ZERO_DOUBTED] = o_sup[sup.OUT_STEER_ZERO_DOUBTED]
+    est[E_TYRE_BALANCE_LOG_SD] = o_lat[lat.OUT_TYRE_BALANCE_LOG_SD]
+    est[E_STEER_ZERO_ERROR_SD] = o_lat[lat.OUT_TYRE_ZERO_ERROR_SD]
     est[E_PITCH_DOUBTED] = 1.0 if att.pitch_doubted(o_att) else 0.0  # the lateral stage's learning gate
     est[E_C_ALPHA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 0]  # seed 001's adaptive observer (diagnostic)
     est[E_C_GAMMA_FRONT_SEED001] = o_stf[stf.OUT_STIFFNESS + 1]
@@ -243,7 +251,20 @@ def packed_step(
     turn_before = att.turn_accel_of(o_att, v1(t, ti, ATTITUDE), o_cnd[cnd.OUT_YAW_ACCEL])
     spd.speed_stage(_state(s, si, SPEED), v1(t, ti, SPEED), o_spd, o_in, pitch_before, turn_before)
     att.attitude_stage(_state(s, si, ATTITUDE), v1(t, ti, ATTITUDE), o_att, o_in, o_spd)
-    cnd.conditioning_stage(sample, _state(s, si, CONDITIONING), v1(t, ti, CONDITIONING), o_cnd, o_in, o_spd, o_att)
+    # the steer zero error the tyre bank's check pointed to the cycle before, if the bank ran (the lateral stage runs
+    # after this one; a bank that did not run has not re-centred its evidence on the zero it moved)
+    zero_error = o_lat[lat.OUT_TYRE_ZERO_ERROR] if o_lat[lat.OUT_RAN] != 0.0 else math.nan
+    cnd.conditioning_stage(
+        sample,
+        _state(s, si, CONDITIONING),
+        v1(t, ti, CONDITIONING),
+        o_cnd,
+        o_in,
+        o_spd,
+        o_att,
+        zero_error,
+        o_lat[lat.OUT_TYRE_ZERO_ERROR_SD],
+    )
     dia.diagnostics_stage(
         _state(s, si, DIAGNOSTICS),
         v1(t, ti, DIAGNOSTICS),
@@ -368,9 +389,16 @@ class Estimator:
 
     def learned_steer_zero(self) -> tuple[float, float] | None:
         """(configured zero count, learned zero error [rad]) once the conditioning has learned it for a time
-        constant of straight riding (or it was restored), else None: what the state file may keep."""
+        constant of straight riding (or it was restored), or the tyre bank's zero check knows it within its valid
+        spread (learned in corners), else None: what the state file may keep."""
         st = self.states["conditioning"]
-        if st[cnd.ST_STEER_ZERO_SECONDS] < self.settings.sensors.steer_zero_time_constant:
+        # (a spread of 0: the bank has not run, its outputs are still the zeros they start from)
+        known_in_corners = (
+            0.0
+            < self.outputs["lateral"][lat.OUT_TYRE_ZERO_ERROR_SD]
+            <= self.params["conditioning"][cnd.P_STEER_ZERO_EVIDENCE_SD]
+        )
+        if st[cnd.ST_STEER_ZERO_SECONDS] < self.settings.sensors.steer_zero_time_constant and not known_in_corners:
             return None
         return float(self.settings.sensors.steer_zero_count), float(st[cnd.ST_STEER_ZERO_SHIFT])
 

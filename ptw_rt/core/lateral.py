@@ -141,6 +141,8 @@ OUTPUTS = Layout(
     tyre_change=1,  # nats: the bank's change statistic (a neighbouring tyre explains the last cycles better)
     tyre_balance_log=1,  # log of the front tyre's factor against the rear's the bank's evidence points to (a check)
     tyre_balance_log_sd=1,  # its sd (inf: no balance between the bank's two balance filters explains the data)
+    tyre_zero_error=1,  # rad: the steer zero's error the bank's evidence points to, beyond the conditioning's (a check)
+    tyre_zero_error_sd=1,  # rad: its sd
     tyre_stiffness=4,  # N/rad: k x nominal [C_af, C_gf, C_ar, C_gr], what is published
     tyre_slope_ratio=1,  # the mean slope ratio of the cycles learned from (1: small slip; `_slope_ratio`)
     ran=1,  # 1: the filters ran this cycle (z is theirs): on every sensor, or coasting through a silent one
@@ -159,6 +161,8 @@ OUTPUTS = Layout(
     OUT_TYRE_CHANGE,
     OUT_TYRE_BALANCE_LOG,
     OUT_TYRE_BALANCE_LOG_SD,
+    OUT_TYRE_ZERO_ERROR,
+    OUT_TYRE_ZERO_ERROR_SD,
     OUT_TYRE_STIFFNESS,
     OUT_TYRE_SLOPE_RATIO,
     OUT_RAN,
@@ -243,7 +247,7 @@ def build_params(settings, design) -> np.ndarray:
         camber_shape=tun.saturation_camber_shape,
         saturation_friction=tun.saturation_friction,
         saturation_uncertainty=tun.saturation_uncertainty,
-        bank=tb.bank_params(count, float(design.sample_time), tun),
+        bank=tb.bank_params(count, float(design.sample_time), tun, settings.sensors.steer_count_rad),
     )
 
 
@@ -344,6 +348,8 @@ def lateral_stage(
             v3(tables, tindex, t0 + T_BAL_GD),
             v3(tables, tindex, t0 + T_BAL_SINV),
             v3(tables, tindex, t0 + T_BAL_LOGDET),
+            cond[cnd.OUT_STEER_ZERO_SHIFT],
+            cond[cnd.OUT_STEER_ZERO_SD],
         )
         for k in range(kf.N_Z):
             kf_out[k] = bank_out[tb.OUT_Z + k]
@@ -393,6 +399,8 @@ def lateral_stage(
     # as much as a front tyre 10 % off (docs/estimator.md, "Tyres that differ by axle: the balance check")
     out[OUT_TYRE_BALANCE_LOG] = bank_out[tb.OUT_BALANCE_LOG]
     out[OUT_TYRE_BALANCE_LOG_SD] = bank_out[tb.OUT_BALANCE_LOG_SD]
+    out[OUT_TYRE_ZERO_ERROR] = bank_out[tb.OUT_ZERO_ERROR]  # a check too: the balance rests on the steer zero
+    out[OUT_TYRE_ZERO_ERROR_SD] = bank_out[tb.OUT_ZERO_ERROR_SD]
     for k in range(4):
         out[OUT_TYRE_STIFFNESS + k] = scale * prm[P_NOMINAL + k]
     out[OUT_RUN_TIME] = st[ST_RUN_TIME]

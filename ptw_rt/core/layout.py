@@ -136,7 +136,11 @@ E_PITCH_DOUBTED = 49  # 1 while the longitudinal accelerometer against GPS doubt
 E_TYRE_BALANCE = 50  # the front tyre's stiffness factor against the rear's the tyre bank's check points to (not applied
 # to the published front; 1 = the file's balance)
 E_TYRE_BALANCE_DOUBTED = 51  # 1 while it does not confirm the file's balance: neither axle's stiffness VALID
-ESTIMATES_SIZE = 52
+E_STEER_ZERO_ERROR = 52  # rad, the steer zero's error the tyre bank's check points to, beyond the conditioning's zero
+E_STEER_ZERO_DOUBTED = 53  # 1 while it does not confirm the conditioning's zero (then E_TYRE_BALANCE_DOUBTED too)
+E_TYRE_BALANCE_LOG_SD = 54  # sd of the log of E_TYRE_BALANCE (the check's marginal: what the steer zero may be too)
+E_STEER_ZERO_ERROR_SD = 55  # rad, sd of E_STEER_ZERO_ERROR
+ESTIMATES_SIZE = 56
 
 # per-signal validity bits (E_VALID), one per published signal group
 V_ROLL = 1 << 0
@@ -203,6 +207,10 @@ ESTIMATE_NAMES = (
     "pitch_doubted",
     "tyre_balance",
     "tyre_balance_doubted",
+    "steer_zero_error",
+    "steer_zero_doubted",
+    "tyre_balance_log_sd",
+    "steer_zero_error_sd",
 )
 assert len(ESTIMATE_NAMES) == ESTIMATES_SIZE
 

@@ -148,6 +148,9 @@ PARAMS = Layout(
     tyre_valid_max_change=1,  # nats: the bank's change statistic above this is an inconsistency, like the NIS's
     tyre_valid_balance_log_sd=1,  # the front/rear balance the bank's check points to: its sd (log) within this ...
     tyre_balance_inner=1,  # ... and its log within this (BALANCE_INNER of a balance step), or neither axle is valid
+    tyre_balance_outer=1,  # ... and its log's 2-sd interval within this (BALANCE_OUTER of a step)
+    tyre_valid_zero_sd=1,  # rad: the steer zero error the bank's check points to: its sd within this ...
+    tyre_zero_inner=1,  # rad: ... and itself within this, or neither axle is valid (the balance rests on the zero)
     tyre_test_max_roll=1,  # rad: learning tests the published tyres only below this lean (`tested`)
     tyre_inner_low=1,  # the bank's lowest and highest hypothesis, half a step inside: an estimate beyond sits on ...
     tyre_inner_high=1,  # ... the edge, where the data may want tyres the bank does not hold (never VALID)
@@ -189,6 +192,9 @@ PARAMS = Layout(
     P_TYRE_VALID_MAX_CHANGE,
     P_TYRE_VALID_BALANCE_LOG_SD,
     P_TYRE_BALANCE_INNER,
+    P_TYRE_BALANCE_OUTER,
+    P_TYRE_VALID_ZERO_SD,
+    P_TYRE_ZERO_INNER,
     P_TYRE_TEST_MAX_ROLL,
     P_TYRE_INNER_LOW,
     P_TYRE_INNER_HIGH,
@@ -221,7 +227,8 @@ OUTPUTS = Layout(
     torque_residual=1,  # N m, windowed RMS of published - UIHOSMO-on-sensors rider torque (0 while not compared)
     plausibility=1,  # that over its speed band's threshold (> 1: REASON_IMPLAUSIBLE)
     steer_residual=1,  # rad, running mean of steer - kinematic steer - slip difference (0 while stopped)
-    tyre_balance_doubted=1,  # 1: the file's front/rear balance is not confirmed (neither axle VALID)
+    tyre_balance_doubted=1,  # 1: the file's front/rear balance is not confirmed (neither axle VALID) ...
+    steer_zero_doubted=1,  # 1: ... for one, because the steer zero it rests on is not
 )
 (
     OUT_MODE,
@@ -232,6 +239,7 @@ OUTPUTS = Layout(
     OUT_PLAUSIBILITY,
     OUT_STEER_RESIDUAL,
     OUT_TYRE_BALANCE_DOUBTED,
+    OUT_STEER_ZERO_DOUBTED,
 ) = OUTPUTS.offsets
 
 
@@ -241,6 +249,10 @@ OUTPUTS = Layout(
 # VALID beyond 20 % (13 without the check), 0.5 left 3; an encoder zero a count off and a payload read as a balance
 # of up to 11 % on tyres of one factor, which lets a front x0.82 read inside a wider limit
 BALANCE_INNER = 0.5
+# ... and its 2-sd interval within this share (about 12 %): a balance that passes at the edge of both (7 % off with its
+# sd at 0.04) is not confirmed. A front x1.2 whose evidence was still coming in passed there for 1.9 s, VALID 20.2 %
+# off (random set 9001, the steer zero learned in the corners moments before)
+BALANCE_OUTER = 0.85
 
 
 def build_params(settings, design) -> np.ndarray:
@@ -273,6 +285,9 @@ def build_params(settings, design) -> np.ndarray:
         tyre_valid_max_change=est.tyre_bank.valid_max_change,
         tyre_valid_balance_log_sd=est.tyre_bank.valid_balance_log_sd,
         tyre_balance_inner=BALANCE_INNER * math.log(est.tyre_bank.balance_step),
+        tyre_balance_outer=BALANCE_OUTER * math.log(est.tyre_bank.balance_step),
+        tyre_valid_zero_sd=est.tyre_bank.valid_zero_sd * settings.sensors.steer_count_rad,
+        tyre_zero_inner=est.tyre_bank.zero_inner * settings.sensors.steer_count_rad,
         tyre_test_max_roll=est.tyre_bank.valid_test_max_roll,
         tyre_inner_low=float(design.tb_scale[0]) * half_step,
         tyre_inner_high=float(design.tb_scale[-1]) / half_step,
@@ -540,11 +555,21 @@ def supervisor_stage(
     # bank's balance check must confirm the file's balance: the balance it points to known within
     # tyre_valid_balance_log_sd and within tyre_balance_inner of the file's, or neither axle is valid
     # (docs/estimator.md, "Tyres that differ by axle: the balance check"). A check: the published front is the scale's
-    balance_doubted = not (
+    # And the balance rests on the steer zero: a zero a count off read as a front x1.23 on a front x0.82. The bank's
+    # zero check must confirm the conditioning's zero likewise (docs/estimator.md, "The steer zero the balance rests
+    # on")
+    zero_doubted = not (
+        lateral[lat.OUT_TYRE_ZERO_ERROR_SD] <= prm[P_TYRE_VALID_ZERO_SD]  # also a NaN
+        and abs(lateral[lat.OUT_TYRE_ZERO_ERROR]) <= prm[P_TYRE_ZERO_INNER]
+    )
+    balance_doubted = zero_doubted or not (
         lateral[lat.OUT_TYRE_BALANCE_LOG_SD] <= prm[P_TYRE_VALID_BALANCE_LOG_SD]  # also a NaN
         and abs(lateral[lat.OUT_TYRE_BALANCE_LOG]) <= prm[P_TYRE_BALANCE_INNER]
+        and abs(lateral[lat.OUT_TYRE_BALANCE_LOG]) + 2.0 * lateral[lat.OUT_TYRE_BALANCE_LOG_SD]
+        <= prm[P_TYRE_BALANCE_OUTER]
     )
     out[OUT_TYRE_BALANCE_DOUBTED] = 1.0 if balance_doubted else 0.0
+    out[OUT_STEER_ZERO_DOUBTED] = 1.0 if zero_doubted else 0.0
     # settled means the estimate held, and held while new evidence came in. Held: within tyre_settle_log_sd of where
     # it settled, half the valid spread by default (the most likely hypothesis alone is a 15 % grid cell, and a road
     # change moved k by 8 % inside one while it stayed VALID, 48 % off; within the whole valid spread a collapsed

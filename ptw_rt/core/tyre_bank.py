@@ -50,11 +50,25 @@ explains the data better than the window's filter at that hypothesis:
     Lambda_s = forget Lambda_s + (ll_s - ll_centre)        (s = 0, 1; only while learning)
 
 A parabola through Lambda at -step, 0 and +step in the log of the front's factor, with a prior, gives the balance
-the evidence points to and its sd (`balance_posterior`: OUT_BALANCE_LOG, OUT_BALANCE_LOG_SD); the supervisor
+the evidence points to and its sd (`check_posterior`: OUT_BALANCE_LOG, OUT_BALANCE_LOG_SD); the supervisor
 withholds VALID when it points away from the file's balance. A check only: an encoder zero a count off and a payload
 read as a balance too (docs/estimator.md, "Tyres that differ by axle: the balance check"). The filters move with the
 estimate (when it is `BALANCE_MOVE_STEPS` of a step from theirs), starting from the window's filter there and taking
 no evidence for `join_settle_time`, as a hypothesis joining the window does; what they learned stays.
+
+**The steer zero check.** The balance rests on the steer encoder's zero: a count off (0.35 deg) is a front slip as
+large as a gentle corner's, and the balance filters read it as a front tyre stiffer or softer (a front x0.82 read
+x1.23 with the zero a count off, x0.78 with it right). The conditioning learns the zero riding straight only, and a
+slalom has no straight. But the evidence filters see the zero in corners too (a constant steer offset, while the
+tyres' slip grows with the lateral acceleration): on `handling_40_120` the filter with the zero a quarter count off
+explained the ride 400 nats worse. So three more filters run beside the most likely hypothesis: on the bank's own
+tables fed the steer less a zero error of -`zero_step` and +`zero_step` (the conditioning's zero taken as right), and
+on the stiffer front's tables with +`zero_step`. Their Lambdas, accumulated as the balance filters', and the balance's
+make a quadratic in (balance, zero error) whose cross term says how much the one reads as the other; its peak, with
+priors (the zero's: how well the conditioning knows its zero), gives both and their marginal spreads
+(`check_posterior`: OUT_BALANCE_LOG, OUT_ZERO_ERROR, rad, and their sds). The supervisor withholds VALID unless they
+confirm the file's balance and the conditioning's zero (docs/estimator.md, "The steer zero the balance rests on").
+A front x0.82 with the zero a quarter count off passed both checks one at a time (each at the other's centre).
 
 Learning is allowed by the caller only from sound inputs, above the validity speed and below a lean
 angle beyond which the plant's tyres leave their linear range (the small-slip stiffness is what we
@@ -89,18 +103,20 @@ B_CHANGE_LEAK = 13  # ... in the change statistic, which fades by this factor pe
 B_JOIN_SETTLE = 14  # cycles a hypothesis that joined the window borrows its neighbour's evidence (`_enter_window`)
 B_BALANCE_LOG_STEP = 15  # log of the balance filters' factor on the front tyre (module doc)
 B_BALANCE_PRIOR_SD = 16  # sd of the log of the front's factor a priori
-PARAM_SIZE = 17
+B_ZERO_STEP = 17  # rad: the zero check's filters' steer zero error, either side (module doc)
+PARAM_SIZE = 18
 
 # ---- state layout: H blocks of (z, init), then per-hypothesis vectors (log-likelihood, NIS, prior, fast NIS,
 # operating log-likelihood, unclipped log-likelihood, cycles left settling, the neighbour it joined from), then
-# scalars, then H blocks of the publishing filters, then the balance check's two filters (module doc) ----
+# scalars, then H blocks of the publishing filters, then the balance check's two filters and the steer zero check's
+# two (module doc) ----
 BLOCK = kf.STATE_SIZE  # one fusion filter's state
 N_VECTORS = 8  # per-hypothesis vectors between the filters' blocks and the scalars
 
 
 @njit(cache=True)
 def state_size(count: int) -> int:
-    return count * BLOCK + N_VECTORS * count + N_SCALARS + count * BLOCK + N_BALANCE * BLOCK
+    return count * BLOCK + N_VECTORS * count + N_SCALARS + count * BLOCK + N_CHECKS * BLOCK
 
 
 @njit(cache=True)
@@ -158,7 +174,8 @@ def _published0(count: int) -> int:
 
 @njit(cache=True)
 def _balance0(count: int) -> int:
-    """The balance check's side s filter is the block at this + s BLOCK (module doc)."""
+    """The balance check's side s filter is the block at this + s BLOCK, the zero check's side s at this +
+    (N_BALANCE + s) BLOCK (module doc)."""
     return _published0(count) + count * BLOCK
 
 
@@ -171,9 +188,17 @@ SC_MAP = 5  # the small-slip posterior's most likely hypothesis of the last cycl
 SC_CHANGE = 6  # the change statistic (`_change_statistic`)
 SC_BAL_H = 7  # the hypothesis the balance check's filters run at (-1: not started)
 SC_BAL_SETTLE = 8  # cycles left in which they take no evidence (they started from another filter's state)
-SC_BALANCE = 9  # Lambda of side 0 (front x 1 / balance_step), then of side 1 (x balance_step): module doc
-N_SCALARS = SC_BALANCE + 2
-N_BALANCE = 2  # the balance check's filters: front x 1 / balance_step, x balance_step
+SC_BALANCE = 9  # Lambda of each of the checks' filters (CHECK_TABLES), module doc
+# the checks' filters (module doc), each the most likely hypothesis's with (front's factor, steer zero error):
+# (x 1 / balance_step, 0), (x balance_step, 0), (x 1, -zero_step), (x 1, +zero_step), (x balance_step, +zero_step);
+# their blocks follow each other from _balance0, their Lambdas from SC_BALANCE
+CHECK_TABLES = (0, 1, -1, -1, 1)  # the balance tables' side they run on (-1: the bank's own)
+CHECK_ZERO = (0.0, 0.0, -1.0, 1.0, 1.0)  # their steer zero error in zero_steps
+N_BALANCE = 2  # the first two: the balance check's
+N_CHECKS = len(CHECK_TABLES)
+SC_ZERO_SHIFT = SC_BALANCE + N_CHECKS  # rad: the conditioning's steer zero the checks' Lambdas are about
+N_SCALARS = SC_ZERO_SHIFT + 1
+RECENTRE_STEPS = 1.0  # zero steps over which the checks' evidence fades by 1/e as the zero moves (_recentre_zero)
 # the balance check's filters move to the most likely hypothesis once the estimate is this many steps of the grid
 # from theirs: comparing the balances at a scale a step off would bias them (a stiffer front makes up for tyres too
 # soft overall), while following every flicker of the most likely hypothesis between two would keep them settling
@@ -195,7 +220,9 @@ OUT_CHANGE = OUT_SCALE + 10  # nats: how much better a neighbouring tyre explain
 OUT_BALANCE = OUT_SCALE + 11  # nats: how much better the better balance filter explains the learning (module doc)
 OUT_BALANCE_LOG = OUT_SCALE + 12  # log of the front tyre's factor against the rear's learned (module doc)
 OUT_BALANCE_LOG_SD = OUT_SCALE + 13  # its sd
-OUT_SIZE = OUT_SCALE + 14
+OUT_ZERO_ERROR = OUT_SCALE + 14  # rad: the steer zero's error the evidence points to, beyond the conditioning's zero
+OUT_ZERO_ERROR_SD = OUT_SCALE + 15  # rad: its sd
+OUT_SIZE = OUT_SCALE + 16
 
 MAX_COUNT = 32  # hypotheses the scratch is laid out for (the design file has `len(tb_scale)`)
 # scratch needed by `bank_step`: innovation (N_Y), the evidence and the publishing filters' outputs (N_Z) and
@@ -211,11 +238,12 @@ SC_WEIGHT = SC_LOG_SCALE + MAX_COUNT
 SC_WEIGHT_OP = SC_WEIGHT + MAX_COUNT
 SC_NIS = SC_WEIGHT_OP + MAX_COUNT  # this cycle's NIS and log det S of each hypothesis
 SC_LD = SC_NIS + MAX_COUNT
-SCRATCH_SIZE = SC_LD + MAX_COUNT
+SC_Y_ZERO = SC_LD + MAX_COUNT  # the measurements as a zero check's filter takes them (its steer less its zero error)
+SCRATCH_SIZE = SC_Y_ZERO + kf.N_Y
 
 
-def bank_params(count: int, dt: float, tuning) -> np.ndarray:
-    """From the config's `estimator.tyre_bank` section (`TyreBankTuning`)."""
+def bank_params(count: int, dt: float, tuning, steer_count_rad: float) -> np.ndarray:
+    """From the config's `estimator.tyre_bank` section (`TyreBankTuning`) and the encoder's count [rad]."""
     prm = np.zeros(PARAM_SIZE)
     prm[B_COUNT] = count
     prm[B_LEARN_FORGET] = math.exp(-dt / tuning.learning_memory)
@@ -234,6 +262,7 @@ def bank_params(count: int, dt: float, tuning) -> np.ndarray:
     prm[B_JOIN_SETTLE] = round(tuning.join_settle_time / dt)
     prm[B_BALANCE_LOG_STEP] = math.log(tuning.balance_step)
     prm[B_BALANCE_PRIOR_SD] = tuning.balance_prior_sd
+    prm[B_ZERO_STEP] = tuning.zero_step * steer_count_rad
     return prm
 
 
@@ -259,7 +288,7 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float,
     st[_scalars0(H) + SC_INIT] = 1.0
     st[_scalars0(H) + SC_BAL_H] = -1.0  # the balance check starts afresh beside the new most likely hypothesis
     st[_scalars0(H) + SC_BAL_SETTLE] = 0.0
-    for side in range(N_BALANCE):
+    for side in range(N_CHECKS):
         st[_scalars0(H) + SC_BALANCE + side] = 0.0
     best = 0
     for h in range(1, H):
@@ -313,7 +342,7 @@ def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
     for h in range(H):
         st[h * BLOCK + kf.INIT] = 0.0
         st[_published0(H) + h * BLOCK + kf.INIT] = 0.0
-    for side in range(N_BALANCE):
+    for side in range(N_CHECKS):
         st[_balance0(H) + side * BLOCK + kf.INIT] = 0.0
 
 
@@ -451,9 +480,12 @@ def bank_step(
     bal_Gd: np.ndarray,
     bal_Sinv: np.ndarray,
     bal_logdet: np.ndarray,
+    zero_shift: float,
+    zero_prior_sd: float,
 ) -> None:
     """One cycle: each filter's innovation, evidence, the two posteriors, then every running filter's step, mixed;
-    the balance check's filters beside them (module doc).
+    the balance and steer zero checks' filters beside them (module doc; `zero_shift`, rad: the conditioning's zero
+    error removed from the steer; `zero_prior_sd`, rad: how well it knows it).
 
     observe: this cycle's measurements are sound (the innovations are checked for consistency);
     track: and they may move the operating tyres the published states are mixed from (at any lean: a tyre
@@ -511,17 +543,8 @@ def bank_step(
         ld_now[h] = 0.0
         if not (observe and st[h * BLOCK + kf.INIT] != 0.0):
             continue
-        z0 = h * BLOCK  # its z: indexed, not sliced (a view costs atomic reference counting, kf.kalman_pair_step_at)
         j = h * G + i
-        for r in range(kf.N_Y):
-            acc = y[r]
-            for c in range(kf.N_Z):
-                acc -= C[r, c] * st[z0 + c]
-            e[r] = acc
-        nis = 0.0
-        for r in range(kf.N_Y):
-            for c in range(kf.N_Y):
-                nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
+        nis = _nis(st, h * BLOCK, y, 0.0, C, Sinv, j, w, e)
         if math.isfinite(nis):  # a non-finite one (a diverged filter) would stay in the windowed means for good
             nisw[h] += alpha * (nis - nisw[h])
             nisf[h] += prm[B_NIS_FAST_ALPHA] * (nis - nisf[h])
@@ -546,7 +569,10 @@ def bank_step(
     for h in range(lo, hi + 1):
         if st[_settle0(H) + h] > 0.0:
             st[_settle0(H) + h] -= 1.0
-    _balance_evidence(st, out, prm, y, i, w, C, bal_Sinv, bal_logdet, nis_now, ld_now, lo, hi, learn, forget, e)
+    _recentre_zero(st, H, prm[B_ZERO_STEP], zero_shift)
+    _check_evidence(
+        st, out, prm, y, i, w, C, Sinv, bal_Sinv, bal_logdet, nis_now, ld_now, lo, hi, learn, forget, e, zero_prior_sd
+    )
 
     # 2. the posteriors over the window: the small-slip one (published stiffness, its spread and consistency)
     # and the operating one (the weights of the published states)
@@ -590,11 +616,43 @@ def bank_step(
     out[OUT_LEARNING] = 1.0 if learn else 0.0
     out[OUT_OPERATING_SCALE] = math.exp(mean_log_op)
     st[sc + SC_MAP] = map_h
-    _balance_step(st, prm, y, u, roll_init, i, w, G, bal_Phi, bal_K, C, bal_Gd, nl, zh, d, map_h, mean_log, scale)
+    y_zero = scratch[SC_Y_ZERO : SC_Y_ZERO + kf.N_Y]
+    _checks_step(
+        st, prm, y, y_zero, u, roll_init, i, w, G, Phi, K, bal_Phi, bal_K, C, Gd, bal_Gd, nl, zh, d, map_h, mean_log,
+        scale,
+    )  # fmt: skip
 
 
 @njit(cache=True)
-def _balance_evidence(
+def _nis(
+    st: np.ndarray,
+    z0: int,
+    y: np.ndarray,
+    steer_error: float,
+    C: np.ndarray,
+    Sinv: np.ndarray,
+    j: int,
+    w: float,
+    e: np.ndarray,
+) -> float:
+    """e' S^-1 e of the filter whose state starts at z0 (indexed, not sliced: a view costs atomic reference
+    counting, kf.kalman_pair_step_at), its innovation e = y - C z with the steer less `steer_error`, S^-1
+    interpolated between rows j and j + 1 by w."""
+    for r in range(kf.N_Y):
+        acc = y[r]
+        for c in range(kf.N_Z):
+            acc -= C[r, c] * st[z0 + c]
+        e[r] = acc
+    e[0] -= steer_error
+    nis = 0.0
+    for r in range(kf.N_Y):
+        for c in range(kf.N_Y):
+            nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
+    return nis
+
+
+@njit(cache=True)
+def _check_evidence(
     st: np.ndarray,
     out: np.ndarray,
     prm: np.ndarray,
@@ -603,7 +661,8 @@ def _balance_evidence(
     w: float,
     C: np.ndarray,
     Sinv: np.ndarray,
-    logdet: np.ndarray,
+    bal_Sinv: np.ndarray,
+    bal_logdet: np.ndarray,
     nis_now: np.ndarray,
     ld_now: np.ndarray,
     lo: int,
@@ -611,13 +670,14 @@ def _balance_evidence(
     learn: bool,
     forget: float,
     e: np.ndarray,
+    zero_prior_sd: float,
 ) -> None:
-    """This cycle of the balance (module doc): each side's Lambda forgets like the bank's evidence and, while
-    learning, adds by how much that side's filter explains this cycle better than the window's filter at the same
-    hypothesis (only if both measured it, neither is settling, and both innovations are finite); then the balance
-    and its spread from them (`balance_posterior`) into `out`."""
+    """This cycle of the balance and steer zero checks (module doc): each side's Lambda forgets like the bank's
+    evidence and, while learning, adds by how much that side's filter explains this cycle better than the window's
+    filter at the same hypothesis (only if both measured it, neither is settling, and both innovations are finite);
+    then the balance and the zero error the evidence points to, and their spreads (`check_posterior`), into `out`."""
     H = int(prm[B_COUNT])
-    G = Sinv.shape[0] // (N_BALANCE * H)
+    G = bal_Sinv.shape[0] // (N_BALANCE * H)
     sc = _scalars0(H)
     hb = int(st[sc + SC_BAL_H])
     take = (
@@ -628,52 +688,104 @@ def _balance_evidence(
         and not st[_settle0(H) + hb] > 0.0
     )
     largest = -math.inf
-    for side in range(N_BALANCE):
+    for side in range(N_CHECKS):
         gain = 0.0
         z0 = _balance0(H) + side * BLOCK
         if take and st[z0 + kf.INIT] != 0.0:
-            j = (side * H + hb) * G + i
-            for r in range(kf.N_Y):
-                acc = y[r]
-                for c in range(kf.N_Z):
-                    acc -= C[r, c] * st[z0 + c]
-                e[r] = acc
-            nis = 0.0
-            for r in range(kf.N_Y):
-                for c in range(kf.N_Y):
-                    nis += e[r] * ((1.0 - w) * Sinv[j, r, c] + w * Sinv[j + 1, r, c]) * e[c]
-            ld = (1.0 - w) * logdet[j, 0, 0] + w * logdet[j + 1, 0, 0]
+            steer_error = CHECK_ZERO[side] * prm[B_ZERO_STEP]
+            tables = CHECK_TABLES[side]
+            if tables < 0:  # the window's filter's tables
+                nis = _nis(st, z0, y, steer_error, C, Sinv, hb * G + i, w, e)
+                ld = ld_now[hb]
+            else:  # a balance filter's: the front's stiffnesses differ
+                j = (tables * H + hb) * G + i
+                nis = _nis(st, z0, y, steer_error, C, bal_Sinv, j, w, e)
+                ld = (1.0 - w) * bal_logdet[j, 0, 0] + w * bal_logdet[j + 1, 0, 0]
             if math.isfinite(nis):
                 gain = 0.5 * (nis_now[hb] + ld_now[hb] - nis - ld)
         value = forget * st[sc + SC_BALANCE + side] + gain
         st[sc + SC_BALANCE + side] = value
-        largest = max(largest, value)
+        if side < N_BALANCE:
+            largest = max(largest, value)
     if st[sc + SC_BAL_SETTLE] > 0.0:
         st[sc + SC_BAL_SETTLE] -= 1.0
     out[OUT_BALANCE] = largest
-    out[OUT_BALANCE_LOG], out[OUT_BALANCE_LOG_SD] = balance_posterior(
-        st[sc + SC_BALANCE], st[sc + SC_BALANCE + 1], prm[B_BALANCE_LOG_STEP], prm[B_BALANCE_PRIOR_SD]
+    lam = sc + SC_BALANCE
+    balance, balance_sd, zero, zero_sd = check_posterior(
+        st[lam], st[lam + 1], st[lam + 2], st[lam + 3], st[lam + 4], prm[B_BALANCE_LOG_STEP], prm[B_ZERO_STEP],
+        prm[B_BALANCE_PRIOR_SD], zero_prior_sd,
+    )  # fmt: skip
+    out[OUT_BALANCE_LOG], out[OUT_BALANCE_LOG_SD] = balance, balance_sd
+    out[OUT_ZERO_ERROR], out[OUT_ZERO_ERROR_SD] = zero, zero_sd
+
+
+@njit(cache=True)
+def _recentre_zero(st: np.ndarray, count: int, step: float, zero_shift: float) -> None:
+    """The conditioning moved its zero (straight riding, or the checks' own evidence) by s zero steps: what a check's
+    filter at zero error z was about, the one at z - s is now. Its quadratic (`check_posterior`, in steps, without
+    the priors) keeps its curvatures and its gradients move by minus them times s; the Lambdas are that quadratic at
+    the checks' points again (nats against the new centre), faded by exp(-|s| / RECENTRE_STEPS): the likelihood is a
+    quadratic near its centre only (a zero a count off read as a front x1.23 and x1.26 either way), and evidence
+    carried over a count without fading claimed the balance within 0.04 while it moved from 1.04 to 1.17 (random
+    set 9001)."""
+    sc = _scalars0(count)
+    s = (zero_shift - st[sc + SC_ZERO_SHIFT]) / step
+    st[sc + SC_ZERO_SHIFT] = zero_shift
+    if s == 0.0 or not math.isfinite(s):
+        return
+    lam = sc + SC_BALANCE
+    l0, l1, l2, l3, l4 = st[lam], st[lam + 1], st[lam + 2], st[lam + 3], st[lam + 4]
+    gb, gz = 0.5 * (l1 - l0), 0.5 * (l3 - l2)
+    cbb, czz = -(l0 + l1), -(l2 + l3)
+    cbz = gb + gz - 0.5 * cbb - 0.5 * czz - l4
+    keep = math.exp(-abs(s) / RECENTRE_STEPS)
+    st[lam] = keep * (l0 + cbz * s)
+    st[lam + 1] = keep * (l1 - cbz * s)
+    st[lam + 2] = keep * (l2 + czz * s)
+    st[lam + 3] = keep * (l3 - czz * s)
+    st[lam + 4] = keep * (l4 - (cbz + czz) * s)
+
+
+@njit(cache=True)
+def check_posterior(
+    b_lower: float,
+    b_upper: float,
+    z_lower: float,
+    z_upper: float,
+    cross: float,
+    b_step: float,
+    z_step: float,
+    b_prior_sd: float,
+    z_prior_sd: float,
+) -> tuple[float, float, float, float]:
+    """(balance, its sd, zero error, its sd): the peak of the joint log-likelihood in the front's log factor b and
+    the steer zero's error z, a quadratic through the checks' Lambdas (nats against the filter at (0, 0)): at
+    (-+b_step, 0) `b_lower`, `b_upper`, at (0, -+z_step) `z_lower`, `z_upper`, and at (b_step, z_step) `cross`
+    (which gives their correlation: a zero a count off reads as a front tyre), plus Gaussian priors around 0. Each
+    sd is the marginal's: what the other may be widens it. Not a peak (a saddle, a NaN): infinite sds."""
+    gb = (b_upper - b_lower) / (2.0 * b_step)
+    gz = (z_upper - z_lower) / (2.0 * z_step)
+    cbb = -(b_lower + b_upper) / (b_step * b_step)  # minus the second derivatives
+    czz = -(z_lower + z_upper) / (z_step * z_step)
+    cbz = (gb * b_step + gz * z_step - 0.5 * cbb * b_step * b_step - 0.5 * czz * z_step * z_step - cross) / (
+        b_step * z_step
     )
+    cbb += 1.0 / max(b_prior_sd * b_prior_sd, 1e-300)  # a prior of no spread (a stage alone on zeros): no ZeroDivision
+    czz += 1.0 / max(z_prior_sd * z_prior_sd, 1e-300)
+    det = cbb * czz - cbz * cbz
+    if not (cbb > 0.0 and det > 0.0):  # also a NaN
+        return 0.0, math.inf, 0.0, math.inf
+    b = (czz * gb - cbz * gz) / det
+    z = (cbb * gz - cbz * gb) / det
+    return b, math.sqrt(czz / det), z, math.sqrt(cbb / det)
 
 
 @njit(cache=True)
-def balance_posterior(lower: float, upper: float, step: float, prior_sd: float) -> tuple[float, float]:
-    """(log of the front's factor, its sd) from Lambda of the filters at -step and +step (`lower`, `upper`, nats
-    against the file's balance at 0) and a Gaussian prior of sd `prior_sd` around 0: the log-likelihood as a
-    parabola through (-step, lower), (0, 0), (step, upper), plus the prior's. A curvature that is not a peak (both
-    balances better than the file's: no balance between them explains the data) is an infinite sd."""
-    precision = -(lower + upper) / (step * step) + 1.0 / (prior_sd * prior_sd)
-    if not precision > 0.0:  # also a NaN
-        return 0.0, math.inf
-    slope = (upper - lower) / (2.0 * step)
-    return slope / precision, 1.0 / math.sqrt(precision)
-
-
-@njit(cache=True)
-def _balance_step(
+def _checks_step(
     st: np.ndarray,
     prm: np.ndarray,
     y: np.ndarray,
+    y_zero: np.ndarray,
     u: float,
     roll_init: float,
     i: int,
@@ -681,8 +793,11 @@ def _balance_step(
     G: int,
     Phi: np.ndarray,
     K: np.ndarray,
+    bal_Phi: np.ndarray,
+    bal_K: np.ndarray,
     C: np.ndarray,
     Gd: np.ndarray,
+    bal_Gd: np.ndarray,
     nl: np.ndarray,
     z: np.ndarray,
     d: np.ndarray,
@@ -690,19 +805,28 @@ def _balance_step(
     mean_log: float,
     scale: np.ndarray,
 ) -> None:
-    """The balance check's filters' step at their hypothesis; then, if the estimate has moved `BALANCE_MOVE_STEPS`
-    of a step from it (or they have not started), they move to the most likely hypothesis: from the window's
-    evidence filter there (its state for the next cycle), taking no evidence while they settle."""
+    """The balance and zero checks' filters' step at their hypothesis (the zero check's on `y_zero`, its steer less
+    the side's zero error); then, if the estimate has moved `BALANCE_MOVE_STEPS` of a step from it (or they have
+    not started), they move to the most likely hypothesis: from the window's evidence filter there (its state for
+    the next cycle), taking no evidence while they settle."""
     H = int(prm[B_COUNT])
     sc = _scalars0(H)
     hb = int(st[sc + SC_BAL_H])
     if hb >= 0:
-        for side in range(N_BALANCE):
-            row = (side * H + hb) * G + i
-            kf.kalman_step_at(st, _balance0(H) + side * BLOCK, z, y, u, roll_init, row, w, Phi, K, C, Gd, nl, d)
+        for side in range(N_CHECKS):
+            for r in range(kf.N_Y):
+                y_zero[r] = y[r]
+            y_zero[0] -= CHECK_ZERO[side] * prm[B_ZERO_STEP]
+            z0 = _balance0(H) + side * BLOCK
+            tables = CHECK_TABLES[side]
+            if tables < 0:
+                kf.kalman_step_at(st, z0, z, y_zero, u, roll_init, hb * G + i, w, Phi, K, C, Gd, nl, d)
+            else:
+                row = (tables * H + hb) * G + i
+                kf.kalman_step_at(st, z0, z, y_zero, u, roll_init, row, w, bal_Phi, bal_K, C, bal_Gd, nl, d)
     step = math.log(scale[1] / scale[0])  # the hypotheses are log-spaced
     if hb < 0 or (hb != map_h and not abs(mean_log - math.log(scale[hb])) <= BALANCE_MOVE_STEPS * step):
-        for side in range(N_BALANCE):
+        for side in range(N_CHECKS):
             for k in range(BLOCK):
                 st[_balance0(H) + side * BLOCK + k] = st[map_h * BLOCK + k]
         st[sc + SC_BAL_H] = map_h

@@ -31,6 +31,7 @@ from ptw_rt.core.layout import (
     E_STEER,
     E_STEER_RATE,
     E_STEER_RESIDUAL,
+    E_STEER_ZERO_DOUBTED,
     E_TORQUE_RESIDUAL,
     E_TORQUE_UIO_SENSORS,
     E_TYRE_BALANCE_DOUBTED,
@@ -89,6 +90,7 @@ SIGNAL_MAP: dict[str, tuple[tuple[str, int, int], ...]] = {
         ("TireChange", E_TYRE_CHANGE, 0),
         ("PitchDoubted", E_PITCH_DOUBTED, 0),
         ("TireBalanceDoubted", E_TYRE_BALANCE_DOUBTED, 0),
+        ("SteerZeroDoubted", E_STEER_ZERO_DOUBTED, 0),
     ),
     # the plausibility monitor (issue #16): diagnostics, valid while the estimator runs
     "EST_Plausibility": (
