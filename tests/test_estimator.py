@@ -506,6 +506,24 @@ def test_a_front_tyre_unlike_the_rear_is_never_valid(front):
         assert (ev.estimates[-1, lay.E_TYRE_BALANCE] < 1.0) == (front < 1.0)  # it points the right way
 
 
+def test_a_steer_zero_learned_in_corners_is_kept_for_the_state_file():
+    """A slalom rides 1.8 s straight, far from the 10 s after which a zero learned riding straight is kept; learned in
+    its corners from the tyre bank's evidence (known within its valid spread) it is kept all the same, the count it
+    is off (the state file's `steer_zero`)."""
+    from ptw_rt.edge.cycle import build_runner, drive_log
+    from ptw_rt.paths import DEFAULT_CONFIG
+    from ptw_rt.sim.recording import encode_frames
+    from ptw_rt.sim.ride import parse_perturbations, simulate
+
+    ride = simulate("slalom_30", perturbation=parse_perturbations(["steer_offset=1"]))
+    runner = build_runner(DEFAULT_CONFIG)
+    drive_log(list(encode_frames(ride, runner.codec)), runner, lambda now, e: None, start=ride.epoch)
+    learned = runner.estimator.learned_steer_zero()
+    assert learned is not None
+    assert learned[0] == runner.settings.sensors.steer_zero_count
+    assert learned[1] == pytest.approx(runner.settings.sensors.steer_count_rad, rel=0.1)
+
+
 @pytest.mark.parametrize(("front", "offset"), [(1.0, 1), (0.8, -1), (1.2, 1)])
 def test_the_steer_zero_is_learned_in_corners_and_the_balance_read_through_it(front, offset):
     """The encoder's zero a count off on a slalom, which has no straight to learn it on. A count is a slip on the front
