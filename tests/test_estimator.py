@@ -541,7 +541,7 @@ def test_the_steer_zero_is_learned_in_corners_and_the_balance_read_through_it(fr
     assert ev.estimates[-1, lay.E_TYRE_BALANCE] == pytest.approx(front, rel=0.05)
     front_valid = cell_metrics(ev)["stiffness_valid"]["front_cornering"]
     if front == 1.0:
-        assert front_valid["valid_share_second_half"] >= 0.25  # once the zero is learned (0 before)
+        assert front_valid["valid_share_second_half"] >= 0.15  # once the zero is learned and confirmed (0 before)
         assert front_valid["max_abs_err_pct"] <= 5.0
     else:
         assert front_valid["valid_frames"] == 0
