@@ -218,7 +218,7 @@ def test_a_reset_keeps_the_tyre_evidence_whole_and_restarts_every_filter():
     before = bank.copy()
     est.reset()
     inits = [first + h * tb.BLOCK + kf.INIT for first in (0, tb._published0(H)) for h in range(H)]
-    inits += [tb._balance0(H) + side * tb.BLOCK + kf.INIT for side in range(tb.N_CHECKS)]  # the checks' filters
+    inits += [tb._checks0(H) + side * tb.BLOCK + kf.INIT for side in range(tb.N_CHECKS)]  # the checks' filters
     assert (bank[inits] == 0.0).all()
     untouched = np.ones(bank.size, dtype=bool)
     untouched[inits] = False

@@ -173,9 +173,9 @@ def _published0(count: int) -> int:
 
 
 @njit(cache=True)
-def _balance0(count: int) -> int:
-    """The balance check's side s filter is the block at this + s BLOCK, the zero check's side s at this +
-    (N_BALANCE + s) BLOCK (module doc)."""
+def _checks0(count: int) -> int:
+    """The checks' filter `side` (CHECK_TABLES: the balance check's, then the zero check's) is the block at this +
+    side BLOCK (module doc)."""
     return _published0(count) + count * BLOCK
 
 
@@ -191,7 +191,7 @@ SC_BAL_SETTLE = 8  # cycles left in which they take no evidence (they started fr
 SC_BALANCE = 9  # Lambda of each of the checks' filters (CHECK_TABLES), module doc
 # the checks' filters (module doc), each the most likely hypothesis's with (front's factor, steer zero error):
 # (x 1 / balance_step, 0), (x balance_step, 0), (x 1, -zero_step), (x 1, +zero_step), (x balance_step, +zero_step);
-# their blocks follow each other from _balance0, their Lambdas from SC_BALANCE
+# their blocks follow each other from _checks0, their Lambdas from SC_BALANCE
 CHECK_TABLES = (0, 1, -1, -1, 1)  # the balance tables' side they run on (-1: the bank's own)
 CHECK_ZERO = (0.0, 0.0, -1.0, 1.0, 1.0)  # their steer zero error in zero_steps
 N_BALANCE = 2  # the first two: the balance check's
@@ -343,7 +343,7 @@ def restart_filters(st: np.ndarray, prm: np.ndarray) -> None:
         st[h * BLOCK + kf.INIT] = 0.0
         st[_published0(H) + h * BLOCK + kf.INIT] = 0.0
     for side in range(N_CHECKS):
-        st[_balance0(H) + side * BLOCK + kf.INIT] = 0.0
+        st[_checks0(H) + side * BLOCK + kf.INIT] = 0.0
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
@@ -690,7 +690,7 @@ def _check_evidence(
     largest = -math.inf
     for side in range(N_CHECKS):
         gain = 0.0
-        z0 = _balance0(H) + side * BLOCK
+        z0 = _checks0(H) + side * BLOCK
         if take and st[z0 + kf.INIT] != 0.0:
             steer_error = CHECK_ZERO[side] * prm[B_ZERO_STEP]
             tables = CHECK_TABLES[side]
@@ -722,8 +722,8 @@ def _check_evidence(
 @njit(cache=True)
 def _recentre_zero(st: np.ndarray, count: int, step: float, zero_shift: float) -> None:
     """The conditioning moved its zero (straight riding, or the checks' own evidence) by s zero steps: what a check's
-    filter at zero error z was about, the one at z - s is now. Its quadratic (`check_posterior`, in steps, without
-    the priors) keeps its curvatures and its gradients move by minus them times s; the Lambdas are that quadratic at
+    filter at zero error z was about, the one at z - s is now. Its quadratic (`_check_quadratic`, without the
+    priors) keeps its curvatures and its gradients move by minus them times s; the Lambdas are that quadratic at
     the checks' points again (nats against the new centre), faded by exp(-|s| / RECENTRE_STEPS): the likelihood is a
     quadratic near its centre only (a zero a count off read as a front x1.23 and x1.26 either way), and evidence
     carried over a count without fading claimed the balance within 0.04 while it moved from 1.04 to 1.17 (random
@@ -735,15 +735,24 @@ def _recentre_zero(st: np.ndarray, count: int, step: float, zero_shift: float) -
         return
     lam = sc + SC_BALANCE
     l0, l1, l2, l3, l4 = st[lam], st[lam + 1], st[lam + 2], st[lam + 3], st[lam + 4]
-    gb, gz = 0.5 * (l1 - l0), 0.5 * (l3 - l2)
-    cbb, czz = -(l0 + l1), -(l2 + l3)
-    cbz = gb + gz - 0.5 * cbb - 0.5 * czz - l4
+    _, _, _, czz, cbz = _check_quadratic(l0, l1, l2, l3, l4)
     keep = math.exp(-abs(s) / RECENTRE_STEPS)
     st[lam] = keep * (l0 + cbz * s)
     st[lam + 1] = keep * (l1 - cbz * s)
     st[lam + 2] = keep * (l2 + czz * s)
     st[lam + 3] = keep * (l3 - czz * s)
     st[lam + 4] = keep * (l4 - (cbz + czz) * s)
+
+
+@njit(cache=True)
+def _check_quadratic(
+    b_lower: float, b_upper: float, z_lower: float, z_upper: float, cross: float
+) -> tuple[float, float, float, float, float]:
+    """(gb, gz, cbb, czz, cbz), per step: the quadratic gb b + gz z - (cbb b^2 + 2 cbz b z + czz z^2) / 2 through the
+    checks' Lambdas at (-+1, 0), (0, -+1) and (1, 1) steps, 0 at (0, 0) (module doc, CHECK_TABLES)."""
+    gb, gz = 0.5 * (b_upper - b_lower), 0.5 * (z_upper - z_lower)
+    cbb, czz = -(b_lower + b_upper), -(z_lower + z_upper)
+    return gb, gz, cbb, czz, gb + gz - 0.5 * cbb - 0.5 * czz - cross
 
 
 @njit(cache=True)
@@ -763,13 +772,9 @@ def check_posterior(
     (-+b_step, 0) `b_lower`, `b_upper`, at (0, -+z_step) `z_lower`, `z_upper`, and at (b_step, z_step) `cross`
     (which gives their correlation: a zero a count off reads as a front tyre), plus Gaussian priors around 0. Each
     sd is the marginal's: what the other may be widens it. Not a peak (a saddle, a NaN): infinite sds."""
-    gb = (b_upper - b_lower) / (2.0 * b_step)
-    gz = (z_upper - z_lower) / (2.0 * z_step)
-    cbb = -(b_lower + b_upper) / (b_step * b_step)  # minus the second derivatives
-    czz = -(z_lower + z_upper) / (z_step * z_step)
-    cbz = (gb * b_step + gz * z_step - 0.5 * cbb * b_step * b_step - 0.5 * czz * z_step * z_step - cross) / (
-        b_step * z_step
-    )
+    gb, gz, cbb, czz, cbz = _check_quadratic(b_lower, b_upper, z_lower, z_upper, cross)  # per step: to units
+    gb, gz = gb / b_step, gz / z_step
+    cbb, czz, cbz = cbb / (b_step * b_step), czz / (z_step * z_step), cbz / (b_step * z_step)
     cbb += 1.0 / max(b_prior_sd * b_prior_sd, 1e-300)  # a prior of no spread (a stage alone on zeros): no ZeroDivision
     czz += 1.0 / max(z_prior_sd * z_prior_sd, 1e-300)
     det = cbb * czz - cbz * cbz
@@ -817,7 +822,7 @@ def _checks_step(
             for r in range(kf.N_Y):
                 y_zero[r] = y[r]
             y_zero[0] -= CHECK_ZERO[side] * prm[B_ZERO_STEP]
-            z0 = _balance0(H) + side * BLOCK
+            z0 = _checks0(H) + side * BLOCK
             tables = CHECK_TABLES[side]
             if tables < 0:
                 kf.kalman_step_at(st, z0, z, y_zero, u, roll_init, hb * G + i, w, Phi, K, C, Gd, nl, d)
@@ -828,6 +833,6 @@ def _checks_step(
     if hb < 0 or (hb != map_h and not abs(mean_log - math.log(scale[hb])) <= BALANCE_MOVE_STEPS * step):
         for side in range(N_CHECKS):
             for k in range(BLOCK):
-                st[_balance0(H) + side * BLOCK + k] = st[map_h * BLOCK + k]
+                st[_checks0(H) + side * BLOCK + k] = st[map_h * BLOCK + k]
         st[sc + SC_BAL_H] = map_h
         st[sc + SC_BAL_SETTLE] = prm[B_JOIN_SETTLE]
