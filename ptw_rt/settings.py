@@ -202,6 +202,10 @@ TYRE_BANK_SCHEMA = Section(
         # road needs to bring back a tyre the old road ruled out (mu_drop on seeds 0/3/5/7/11/13: followed within
         # 10 s on 25 of 30 rides at 30, 22 at 50; docs/estimator.md, "Memory")
         "evidence_floor": (Number("", ge=5, le=200), 30.0),
+        # the most likely hypothesis (the running window's centre, where the published peak is read) changes only
+        # to one that leads it by more than this (nats): near the floor a held-back tyre can take the lead for a
+        # cycle on one phase of a weave and the published scale jumped 15 % for it (docs/estimator.md)
+        "map_hysteresis": (Number("", ge=0, le=100), 5.0),
         # The data measure the tyres' slope where they work, which is below the small-slip stiffness once they use a
         # share of their grip (a wet road's riders learn at 25-35 % of it: 7-10 % soft). The published scale is the
         # bank's over the mean slope ratio of the cycles it learned from, for a Magic-Formula tyre
@@ -510,6 +514,7 @@ class TyreBankTuning:
     running_half_width: int
     max_evidence_nis_fast: float
     evidence_floor: float
+    map_hysteresis: float
     join_settle_time: float
     saturation_slip_shape: float
     saturation_camber_shape: float

@@ -172,6 +172,31 @@ def test_running_window_walks_to_far_tyres(bank):
     assert out[tb.OUT_LOG_SD] < 0.05
 
 
+@pytest.mark.parametrize("lead_share, moves", [(0.4, False), (2.0, True)])
+def test_the_most_likely_tyre_changes_only_for_a_lead_beyond_the_hysteresis(bank, lead_share, moves):
+    """A neighbour of the most likely hypothesis that leads it by less than `map_hysteresis` nats does not take its
+    place (the window's centre and the hypothesis the published peak is read at): near the evidence floor a tyre
+    the ride had ruled out took the lead for a cycle on one phase of a weave, and the published scale jumped 15 %
+    for it (`mu_drop` mu 0.85, noise seed 419). A lead beyond it does."""
+    _, tuning, _, t = bank
+    H = len(t["tb_scale"])
+    Y = _ride(bank[0], 1.0, 12.0, excite=True, seed=3)
+    lead = lead_share * tuning.map_hysteresis
+    held = []
+
+    def lift_the_neighbour(k, st):
+        if k == len(Y) - 2:
+            sc = tb._scalars0(H)
+            m = int(st[sc + tb.SC_MAP])
+            held.append(m)
+            st[tb._logl0(H) + m + 1] = st[tb._logl0(H) + m] + lead
+
+    _, out, _ = _run(bank, Y, on_cycle=lift_the_neighbour)
+    m = held[0]
+    assert t["tb_scale"][m] == pytest.approx(1.0)
+    assert out[tb.OUT_MAP_SCALE] == pytest.approx(t["tb_scale"][m + 1] if moves else t["tb_scale"][m])
+
+
 @pytest.mark.parametrize("centre, expected", [(0, 0), (1, 0), (6, 3), (10, 7), (13, 7)])
 def test_running_window_stays_inside_the_bank(centre, expected):
     assert tb._window_low(14, centre, 3) == expected
@@ -297,6 +322,7 @@ def test_the_published_torque_near_the_grip_limit_is_within_15_percent_of_the_pe
         (5, "stiffness=0.7"),
         (419, "stiffness=1.3"),
         (1001, "mu_scale=0.85"),
+        (419, "mu_scale=0.85"),
     ],
 )
 def test_a_changed_road_is_followed_within_10_s(seed, perturbation):
@@ -308,7 +334,9 @@ def test_a_changed_road_is_followed_within_10_s(seed, perturbation):
     (the data measure the tyres' slope at 25-35 % of the grip; `lateral._slope_ratio`) and never came within 10 %;
     now 5.8, 9.0 and 3.3 s. Seed 419 ×1.3 and seed 1001 μ 0.85 rode above the learning range's end of 0.15 rad for
     3-7 s after the drop and followed after 18.4 and 11.4 s; with the end at 0.175 rad (the slope correction takes
-    the tyres' working point into account) 1.3 and 6.1 s. The +50 kg ride is the next test's."""
+    the tyres' working point into account) 1.3 and 6.1 s. Seed 419 μ 0.85 was within 10 % from 23.9 s but
+    for its last 0.07 s, where a tyre the ride had ruled out led for a cycle (`map_hysteresis`). The +50 kg ride is
+    the next test's."""
     from ptw_rt.eval.evaluate import evaluate_ride
     from ptw_rt.eval.matrix import MU_DROP_AT, learning_times
     from ptw_rt.sim.ride import parse_perturbations, simulate

@@ -104,7 +104,8 @@ B_JOIN_SETTLE = 14  # cycles a hypothesis that joined the window borrows its nei
 B_BALANCE_LOG_STEP = 15  # log of the balance filters' factor on the front tyre (module doc)
 B_BALANCE_PRIOR_SD = 16  # sd of the log of the front's factor a priori
 B_ZERO_STEP = 17  # rad: the zero check's filters' steer zero error, either side (module doc)
-PARAM_SIZE = 18
+B_MAP_HYSTERESIS = 18  # nats another hypothesis must lead the most likely one by to take its place
+PARAM_SIZE = 19
 
 # ---- state layout: H blocks of (z, init), then per-hypothesis vectors (log-likelihood, NIS, prior, fast NIS,
 # operating log-likelihood, unclipped log-likelihood, cycles left settling, the neighbour it joined from), then
@@ -263,6 +264,7 @@ def bank_params(count: int, dt: float, tuning, steer_count_rad: float) -> np.nda
     prm[B_BALANCE_LOG_STEP] = math.log(tuning.balance_step)
     prm[B_BALANCE_PRIOR_SD] = tuning.balance_prior_sd
     prm[B_ZERO_STEP] = tuning.zero_step * steer_count_rad
+    prm[B_MAP_HYSTERESIS] = tuning.map_hysteresis
     return prm
 
 
@@ -589,6 +591,9 @@ def bank_step(
         dl = log_scale[h] - mean_log
         var_log += weight[h] * dl * dl
     map_h = _most_likely(logl, lo, hi)
+    held = int(st[sc + SC_MAP])
+    if lo <= held <= hi and not logl[map_h] > logl[held] + prm[B_MAP_HYSTERESIS]:
+        map_h = held  # a lead within the hysteresis does not move the window and the peak read (settings)
     mean_log, var_log = _sub_grid_peak(logl_raw, log_scale, lo, hi, map_h, mean_log, var_log)
 
     # 3. every running filter's step; the published states are the operating posterior's mixture of the
