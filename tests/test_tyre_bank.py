@@ -515,10 +515,10 @@ def test_moving_the_zero_recentres_the_checks_evidence_and_fades_it():
     st = tb.new_state(H)
     sc = tb._scalars0(H)
     b0, z0, sb, sz = 0.05, 0.4 * Z_STEP, 0.03, 0.2 * Z_STEP
-    st[sc + tb.SC_BALANCE : sc + tb.SC_BALANCE + tb.N_CHECKS] = _quadratic(b0, z0, sb, sz, 0.7)
+    st[sc + tb.SC_CHECK_LAMBDA : sc + tb.SC_CHECK_LAMBDA + tb.N_CHECKS] = _quadratic(b0, z0, sb, sz, 0.7)
     tb._recentre_zero(st, H, Z_STEP, Z_STEP / 3.0)
     assert st[sc + tb.SC_ZERO_SHIFT] == Z_STEP / 3.0
-    lam = st[sc + tb.SC_BALANCE : sc + tb.SC_BALANCE + tb.N_CHECKS]
+    lam = st[sc + tb.SC_CHECK_LAMBDA : sc + tb.SC_CHECK_LAMBDA + tb.N_CHECKS]
     b, b_sd, z, z_sd = tb.check_posterior(*lam, B_STEP, Z_STEP, 1e6, 1e6)
     fade = math.exp(-1.0 / 3.0 / tb.RECENTRE_STEPS)
     assert (b, z) == pytest.approx((b0, z0 - Z_STEP / 3.0), rel=1e-6)

@@ -43,7 +43,7 @@ expected value says that tyre explains the data. Both together make the valid bi
 
 **The balance check.** The one scale cannot say a front tyre that differs from the rear (pressure, wear, another
 make): with the front x0.8 it follows the rear and published the front 23 % off. Two more evidence filters run beside
-the most likely hypothesis (at `SC_BAL_H`), its front tyre's stiffnesses times 1 / `balance_step` and `balance_step`
+the most likely hypothesis (at `SC_CHECK_H`), its front tyre's stiffnesses times 1 / `balance_step` and `balance_step`
 (design: ptw_rt.design.tyre_bank). Over the learning cycles, with the bank's memory, each accumulates by how much it
 explains the data better than the window's filter at that hypothesis:
 
@@ -53,7 +53,7 @@ A parabola through Lambda at -step, 0 and +step in the log of the front's factor
 the evidence points to and its sd (`check_posterior`: OUT_BALANCE_LOG, OUT_BALANCE_LOG_SD); the supervisor
 withholds VALID when it points away from the file's balance. A check only: an encoder zero a count off and a payload
 read as a balance too (docs/estimator.md, "Tyres that differ by axle: the balance check"). The filters move with the
-estimate (when it is `BALANCE_MOVE_STEPS` of a step from theirs), starting from the window's filter there and taking
+estimate (when it is `CHECK_MOVE_STEPS` of a step from theirs), starting from the window's filter there and taking
 no evidence for `join_settle_time`, as a hypothesis joining the window does; what they learned stays.
 
 **The steer zero check.** The balance rests on the steer encoder's zero: a count off (0.35 deg) is a front slip as
@@ -187,23 +187,24 @@ SC_MS_R = 3  # windowed mean square of the yaw rate
 SC_LOW = 4  # first hypothesis of the running window
 SC_MAP = 5  # the small-slip posterior's most likely hypothesis of the last cycle (the window's centre)
 SC_CHANGE = 6  # the change statistic (`_change_statistic`)
-SC_BAL_H = 7  # the hypothesis the balance check's filters run at (-1: not started)
-SC_BAL_SETTLE = 8  # cycles left in which they take no evidence (they started from another filter's state)
-SC_BALANCE = 9  # Lambda of each of the checks' filters (CHECK_TABLES), module doc
+SC_CHECK_H = 7  # the hypothesis the checks' filters (the balance's and the steer zero's) run at (-1: not started)
+SC_CHECK_SETTLE = 8  # cycles left in which they take no evidence (they started from another filter's state)
+SC_CHECK_LAMBDA = 9  # Lambda of each of the checks' filters (CHECK_TABLES), module doc
 # the checks' filters (module doc), each the most likely hypothesis's with (front's factor, steer zero error):
 # (x 1 / balance_step, 0), (x balance_step, 0), (x 1, -zero_step), (x 1, +zero_step), (x balance_step, +zero_step);
-# their blocks follow each other from _checks0, their Lambdas from SC_BALANCE
+# their blocks follow each other from _checks0, their Lambdas from SC_CHECK_LAMBDA
 CHECK_TABLES = (0, 1, -1, -1, 1)  # the balance tables' side they run on (-1: the bank's own)
 CHECK_ZERO = (0.0, 0.0, -1.0, 1.0, 1.0)  # their steer zero error in zero_steps
 N_BALANCE = 2  # the first two: the balance check's
 N_CHECKS = len(CHECK_TABLES)
-SC_ZERO_SHIFT = SC_BALANCE + N_CHECKS  # rad: the conditioning's steer zero the checks' Lambdas are about
+SC_ZERO_SHIFT = SC_CHECK_LAMBDA + N_CHECKS  # rad: the conditioning's steer zero the checks' Lambdas are about
 N_SCALARS = SC_ZERO_SHIFT + 1
 RECENTRE_STEPS = 1.0  # zero steps over which the checks' evidence fades by 1/e as the zero moves (_recentre_zero)
-# the balance check's filters move to the most likely hypothesis once the estimate is this many steps of the grid
-# from theirs: comparing the balances at a scale a step off would bias them (a stiffer front makes up for tyres too
-# soft overall), while following every flicker of the most likely hypothesis between two would keep them settling
-BALANCE_MOVE_STEPS = 0.75
+# the checks' filters (the balance's and the steer zero's) move to the most likely hypothesis once the estimate is
+# this many steps of the grid from theirs: comparing the balances at a scale a step off would bias them (a stiffer
+# front makes up for tyres too soft overall), while following every flicker of the most likely hypothesis between
+# two would keep them settling
+CHECK_MOVE_STEPS = 0.75
 
 # ---- outputs ----
 OUT_Z = 0  # operating posterior's mixture of the publishing filters' corrected states (kf.N_Z)
@@ -288,10 +289,10 @@ def set_prior(st: np.ndarray, prm: np.ndarray, scale: np.ndarray, centre: float,
         st[_settle0(H) + h] = 0.0
     st[_scalars0(H) + SC_CENTRE] = lc
     st[_scalars0(H) + SC_INIT] = 1.0
-    st[_scalars0(H) + SC_BAL_H] = -1.0  # the balance check starts afresh beside the new most likely hypothesis
-    st[_scalars0(H) + SC_BAL_SETTLE] = 0.0
+    st[_scalars0(H) + SC_CHECK_H] = -1.0  # the checks start afresh beside the new most likely hypothesis
+    st[_scalars0(H) + SC_CHECK_SETTLE] = 0.0
     for side in range(N_CHECKS):
-        st[_scalars0(H) + SC_BALANCE + side] = 0.0
+        st[_scalars0(H) + SC_CHECK_LAMBDA + side] = 0.0
     best = 0
     for h in range(1, H):
         if abs(math.log(scale[h]) - lc) < abs(math.log(scale[best]) - lc):
@@ -684,11 +685,11 @@ def _check_evidence(
     H = int(prm[B_COUNT])
     G = bal_Sinv.shape[0] // (N_BALANCE * H)
     sc = _scalars0(H)
-    hb = int(st[sc + SC_BAL_H])
+    hb = int(st[sc + SC_CHECK_H])
     take = (
         learn
         and lo <= hb <= hi
-        and st[sc + SC_BAL_SETTLE] <= 0.0
+        and st[sc + SC_CHECK_SETTLE] <= 0.0
         and not math.isnan(nis_now[hb])
         and not st[_settle0(H) + hb] > 0.0
     )
@@ -708,14 +709,14 @@ def _check_evidence(
                 ld = (1.0 - w) * bal_logdet[j, 0, 0] + w * bal_logdet[j + 1, 0, 0]
             if math.isfinite(nis):
                 gain = 0.5 * (nis_now[hb] + ld_now[hb] - nis - ld)
-        value = forget * st[sc + SC_BALANCE + side] + gain
-        st[sc + SC_BALANCE + side] = value
+        value = forget * st[sc + SC_CHECK_LAMBDA + side] + gain
+        st[sc + SC_CHECK_LAMBDA + side] = value
         if side < N_BALANCE:
             largest = max(largest, value)
-    if st[sc + SC_BAL_SETTLE] > 0.0:
-        st[sc + SC_BAL_SETTLE] -= 1.0
+    if st[sc + SC_CHECK_SETTLE] > 0.0:
+        st[sc + SC_CHECK_SETTLE] -= 1.0
     out[OUT_BALANCE] = largest
-    lam = sc + SC_BALANCE
+    lam = sc + SC_CHECK_LAMBDA
     balance, balance_sd, zero, zero_sd = check_posterior(
         st[lam], st[lam + 1], st[lam + 2], st[lam + 3], st[lam + 4], prm[B_BALANCE_LOG_STEP], prm[B_ZERO_STEP],
         prm[B_BALANCE_PRIOR_SD], zero_prior_sd,
@@ -738,7 +739,7 @@ def _recentre_zero(st: np.ndarray, count: int, step: float, zero_shift: float) -
     st[sc + SC_ZERO_SHIFT] = zero_shift
     if s == 0.0 or not math.isfinite(s):
         return
-    lam = sc + SC_BALANCE
+    lam = sc + SC_CHECK_LAMBDA
     l0, l1, l2, l3, l4 = st[lam], st[lam + 1], st[lam + 2], st[lam + 3], st[lam + 4]
     _, _, _, czz, cbz = _check_quadratic(l0, l1, l2, l3, l4)
     keep = math.exp(-abs(s) / RECENTRE_STEPS)
@@ -816,12 +817,12 @@ def _checks_step(
     scale: np.ndarray,
 ) -> None:
     """The balance and zero checks' filters' step at their hypothesis (the zero check's on `y_zero`, its steer less
-    the side's zero error); then, if the estimate has moved `BALANCE_MOVE_STEPS` of a step from it (or they have
+    the side's zero error); then, if the estimate has moved `CHECK_MOVE_STEPS` of a step from it (or they have
     not started), they move to the most likely hypothesis: from the window's evidence filter there (its state for
     the next cycle), taking no evidence while they settle."""
     H = int(prm[B_COUNT])
     sc = _scalars0(H)
-    hb = int(st[sc + SC_BAL_H])
+    hb = int(st[sc + SC_CHECK_H])
     if hb >= 0:
         for side in range(N_CHECKS):
             for r in range(kf.N_Y):
@@ -835,9 +836,9 @@ def _checks_step(
                 row = (tables * H + hb) * G + i
                 kf.kalman_step_at(st, z0, z, y_zero, u, roll_init, row, w, bal_Phi, bal_K, C, bal_Gd, nl, d)
     step = math.log(scale[1] / scale[0])  # the hypotheses are log-spaced
-    if hb < 0 or (hb != map_h and not abs(mean_log - math.log(scale[hb])) <= BALANCE_MOVE_STEPS * step):
+    if hb < 0 or (hb != map_h and not abs(mean_log - math.log(scale[hb])) <= CHECK_MOVE_STEPS * step):
         for side in range(N_CHECKS):
             for k in range(BLOCK):
                 st[_checks0(H) + side * BLOCK + k] = st[map_h * BLOCK + k]
-        st[sc + SC_BAL_H] = map_h
-        st[sc + SC_BAL_SETTLE] = prm[B_JOIN_SETTLE]
+        st[sc + SC_CHECK_H] = map_h
+        st[sc + SC_CHECK_SETTLE] = prm[B_JOIN_SETTLE]
