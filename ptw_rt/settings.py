@@ -120,6 +120,12 @@ TYRE_BANK_SCHEMA = Section(
         # slope at the working point corrects the evidence (`lateral._slope_ratio`); 0.15 rad before the correction,
         # 0.175 since it: a changed road followed sooner (docs/estimator.md, "The learning range's end, again")
         "max_learning_roll": (Number("rad", gt=0, le=1.0), 0.175),
+        # ... and while the longitudinal acceleration (the accelerometer's beyond its offset against GPS, over 0.3 s)
+        # is within this: braking or accelerating moves load between the axles, which the filters' tyres (the
+        # file's static loads) do not, and on a wet road the less loaded axle works nearer its grip: braking at
+        # 4-6 m/s^2 in a corner read a front x0.81 as the file's balance (random route 963102393, seed 2255: VALID
+        # 31.6 % off; docs/estimator.md, "The balance check sure of the wrong balance")
+        "max_learning_long_accel": (Number("m/s^2", gt=0, le=50), 3.0),
         # ... but the published tyres count as tested (`valid_untested_time`, `settle_learning_time`) only by learning
         # below this lean: near the learning range's end on a wet road the tyres work at 25-35 % of their grip, where
         # their slope is 9-16 % below the small-slip one, and `mu_drop`'s riders, who never come more upright after
@@ -485,6 +491,7 @@ class TyreBankTuning:
     consistency_window: float
     fast_consistency_window: float
     max_learning_roll: float
+    max_learning_long_accel: float
     valid_test_max_roll: float
     valid_log_sd: float
     valid_max_nis: float

@@ -217,6 +217,33 @@ def test_the_published_scale_is_the_banks_over_the_mean_slope_ratio_of_what_it_l
     assert st[lat.ST_SLOPE_SUM] / st[lat.ST_SLOPE_WEIGHT] >= lat.MIN_SLOPE_RATIO
 
 
+def test_the_learning_gates_longitudinal_acceleration_is_the_accelerometers_beyond_its_offset_low_passed(
+    settings, design
+):
+    """`_long_accel`: the accelerometer's x less the speed stage's offset against GPS (its bias and the grade), over
+    LONG_ACCEL_TIME; held while the accelerometer is not there (a NaN never enters). Beyond
+    `max_learning_long_accel` (3 m/s^2) the tyres do not learn: load moves between the axles."""
+    b = lat.STAGE.alone(settings, design)
+    st, prm = b.state, b.params
+    assert prm[lat.P_MAX_LEARNING_LONG_ACCEL] == pytest.approx(settings.estimator.tyre_bank.max_learning_long_accel)
+    speed = spd.OUTPUTS.vector({"u": 20.0, "accel_offset": 0.4}, strict=False)
+
+    def inputs(a_x, ok=1.0):
+        v = inp.OUTPUTS.vector({"accel_ok": ok}, strict=False)
+        v[inp.OUT_RAW + inp.RAW_AX] = a_x
+        return v
+
+    for _ in range(int(round(3.0 / prm[lat.P_DT]))):  # braking at 4 m/s^2 on a grade the offset holds
+        a = lat._long_accel(st, prm, inputs(-3.6), speed)
+    assert a == pytest.approx(-4.0, abs=1e-3)
+    assert lat._long_accel(st, prm, inputs(float("nan")), speed) == pytest.approx(a)
+    assert lat._long_accel(st, prm, inputs(5.0, ok=0.0), speed) == pytest.approx(a)
+    n = int(round(lat.LONG_ACCEL_TIME / prm[lat.P_DT]))
+    for _ in range(n):
+        a = lat._long_accel(st, prm, inputs(0.4), speed)
+    assert -4.0 * np.exp(-0.9) < a < -4.0 * np.exp(-1.1)  # 1/e of it left after LONG_ACCEL_TIME
+
+
 def _observed(b, a_y: float, reasons: int = 0, steer_trusted: float = 1.0) -> float:
     """One cycle riding straight at 20 m/s with the lateral acceleration `a_y`; the tyre filters' short-window NIS."""
     cond = cnd.OUTPUTS.vector({"run": 1.0, "a_y": a_y}, strict=False)

@@ -58,6 +58,7 @@ STATE = Layout(
     slope_sum=1,  # the tyres' slope over their small-slip stiffness, summed over the learning cycles (faded) ...
     slope_weight=1,  # ... and their (faded) count: the mean slope ratio the bank's scale is corrected by
     small_slip_scale=1,  # last cycle's published scale (the peak force of this cycle's slope ratio; 0: none yet)
+    long_accel=1,  # m/s^2: the longitudinal accelerometer beyond its offset against GPS, low-passed (LONG_ACCEL_TIME)
     ran=1,  # 1: the filters ran last cycle (a coast only continues a running filter)
     coast_time=1,  # s the filters have coasted through a silent sensor
     input_quiet=1,  # s since the inputs last raised a fault reason (INPUT_QUIET_TIME)
@@ -74,6 +75,7 @@ STATE = Layout(
     ST_SLOPE_SUM,
     ST_SLOPE_WEIGHT,
     ST_SMALL_SLIP_SCALE,
+    ST_LONG_ACCEL,
     ST_RAN,
     ST_COAST_TIME,
     ST_INPUT_QUIET,
@@ -89,6 +91,7 @@ PARAMS = Layout(
     max_torque=1,  # N m: likewise
     converge_time=1,  # s after a (re)start before the filters' innovations are evidence
     max_learning_roll=1,  # rad: beyond, the tyres leave their linear range: no learning
+    max_learning_long_accel=1,  # m/s^2: beyond, load moves between the axles: no learning
     min_learning_speed=1,  # m/s
     max_learning_bias_share=1,  # no learning while the gyro's and accelerometer's bias spread may move k by more
     steer_per_yaw=1,  # m: wheelbase / cos(caster), the kinematic steer per (yaw rate / speed)
@@ -110,6 +113,7 @@ PARAMS = Layout(
     P_MAX_TORQUE,
     P_CONVERGE_TIME,
     P_MAX_LEARNING_ROLL,
+    P_MAX_LEARNING_LONG_ACCEL,
     P_MIN_LEARNING_SPEED,
     P_MAX_LEARNING_BIAS_SHARE,
     P_STEER_PER_YAW,
@@ -234,6 +238,7 @@ def build_params(settings, design) -> np.ndarray:
         max_torque=est.max_rider_torque,
         converge_time=est.converge_time,
         max_learning_roll=tun.max_learning_roll,
+        max_learning_long_accel=tun.max_learning_long_accel,
         min_learning_speed=tun.min_learning_speed,
         max_learning_bias_share=tun.max_learning_bias_share,
         steer_per_yaw=(settings.vehicle.l_f + settings.vehicle.l_r) / math.cos(settings.vehicle.caster),
@@ -315,10 +320,12 @@ def lateral_stage(
             and st[ST_RUN_TIME] >= prm[P_CONVERGE_TIME]
         )
         track = observe and u >= prm[P_MIN_LEARNING_SPEED]
+        long_accel = _long_accel(st, prm, inputs, speed)
         bias_share = _bias_share(st, prm, attitude[att.OUT_YAW_RATE_SD], attitude[att.OUT_BAY_SD], y_kf[3], u)
         learn = (
             track
             and abs(roll_prev) < prm[P_MAX_LEARNING_ROLL]
+            and abs(long_accel) <= prm[P_MAX_LEARNING_LONG_ACCEL]
             and bias_share <= prm[P_MAX_LEARNING_BIAS_SHARE]
             and not att.pitch_doubted(attitude)
         )
@@ -430,6 +437,20 @@ def _coasting(st: np.ndarray, prm: np.ndarray, run: bool, inputs: np.ndarray, co
     st[ST_COAST_TIME] += prm[P_DT]
     limit = MAX_STEER_COAST if rates_ok else MAX_IMU_COAST
     return st[ST_COAST_TIME] < limit + 0.5 * prm[P_DT]  # limit / dt cycles (a sum of dt drifts past the limit)
+
+
+LONG_ACCEL_TIME = 0.3  # s: the longitudinal acceleration of the learning gate is low-passed over this
+
+
+@njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
+def _long_accel(st: np.ndarray, prm: np.ndarray, inputs: np.ndarray, speed: np.ndarray) -> float:
+    """The longitudinal acceleration (m/s^2): the accelerometer beyond what it reads at a steady speed (its bias and
+    the road's grade, the speed stage's offset against GPS), low-passed over LONG_ACCEL_TIME; held while the
+    accelerometer is not there."""
+    a_x = inputs[inp.OUT_RAW + inp.RAW_AX] - speed[spd.OUT_ACCEL_OFFSET]
+    if inputs[inp.OUT_ACCEL_OK] != 0.0 and math.isfinite(a_x):
+        st[ST_LONG_ACCEL] += prm[P_DT] / LONG_ACCEL_TIME * (a_x - st[ST_LONG_ACCEL])
+    return st[ST_LONG_ACCEL]
 
 
 @njit(cache=True, inline="always")  # no call: see ptw_rt.core.stage, "Reference counting"
